@@ -1,0 +1,216 @@
+"""The localizer: what to do with each incoming message, shared by the node and the replay tool.
+
+It owns the map, the models and the particle filter, and turns a stream of
+(odometry twist, stamp) and (scan, stamp) into pose estimates:
+
+- odometry: dt from consecutive *message stamps* (never the wall clock), so bags replay right at
+  any rate; the twist (vx, vy, ωz) is integrated over dt along a constant-twist arc and applied
+  to every particle. A stamp going backwards or a gap longer than ``max_odom_gap`` resets the
+  reference instead of moving particles;
+- scan: downsampled, then a sensor update (+ resampling) once the car has moved
+  ``update_min_distance`` / ``update_min_angle`` since the last one (always right after an
+  initialisation, so a parked car's cloud still tightens once);
+- nothing happens before a map and an initial pose (or a global initialisation) have arrived.
+
+Thread safety: the node may call ``on_odometry`` while ``on_scan`` runs. Odometry that arrives
+during a sensor update is queued and applied before the next update, and the returned estimate
+is the last one composed with the queued motion, so odometry never waits for a slow scan.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import compose
+from .mcl import Estimate, MonteCarloLocalizer
+from .motion_model import MotionModel
+from .occupancy_map import OccupancyMap
+from .parameters import Parameters
+from .scan import downsample_scan
+from .sensor_model import SensorModel
+
+
+@dataclass
+class PoseEstimate:
+    stamp: float  # seconds: the time of the data the estimate reflects
+    pose: np.ndarray  # (3,)
+    covariance: np.ndarray  # (3, 3)
+
+
+def twist_to_delta(vx: float, vy: float, wz: float, dt: float) -> np.ndarray:
+    """Robot-frame displacement [dx, dy, dθ] after driving a constant twist for dt."""
+    dth = wz * dt
+    if abs(dth) < 1e-6:
+        c, s = 1.0 - 0.5 * dth * dth / 3.0, 0.5 * dth  # sin(x)/x ≈ 1, (1-cos x)/x ≈ x/2
+        return np.array([vx * dt * c - vy * dt * s, vx * dt * s + vy * dt * c, dth])
+    a, b = np.sin(dth) / wz, (1.0 - np.cos(dth)) / wz
+    return np.array([vx * a - vy * b, vx * b + vy * a, dth])
+
+
+def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
+    """The particle filter and its models, configured from parameters."""
+    rng = rng if rng is not None else np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
+    motion = MotionModel(
+        deterministic=params.deterministic, rng=rng,
+        a_trans=params.motion_a_trans, a_lateral=params.motion_a_lateral, a_rot=params.motion_a_rot,
+        a_rot_to_trans=params.motion_a_rot_to_trans, a_trans_to_rot=params.motion_a_trans_to_rot,
+        floor_xy=params.motion_floor_xy, floor_theta=params.motion_floor_theta)
+    sensor = SensorModel(
+        alpha_hit=params.alpha_hit, alpha_short=params.alpha_short, alpha_max=params.alpha_max,
+        alpha_rand=params.alpha_rand, sigma_hit=params.sigma_hit, table_width=params.table_width,
+        squash_factor=params.squash_factor, num_beams_per_particle=params.num_beams_per_particle,
+        scan_field_of_view=params.scan_field_of_view, lidar_scale_to_map_scale=params.lidar_scale_to_map_scale,
+        laser_offset=(params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
+        ray_caster=params.ray_caster)
+    return MonteCarloLocalizer(motion, sensor, params.num_particles, params.resample_ess_fraction,
+                               (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng)
+
+
+class Localizer:
+    max_odom_gap = 1.0  # seconds: a longer silence resets the odometry reference
+
+    def __init__(self, params: Parameters | None = None, logger: logging.Logger | None = None):
+        self.params = params if params is not None else Parameters()
+        self.log = logger or logging.getLogger("localization")
+        self.filter = build_filter(self.params)
+        self.map: OccupancyMap | None = None
+        self._lock = threading.Lock()
+        self._pending = np.zeros(3)  # odometry received during a sensor update
+        self._pending_lock = threading.Lock()
+        self._last_odom_stamp: float | None = None
+        self._since_update = np.zeros(2)  # distance, angle travelled since the last sensor update
+        self._force_update = False
+        self._estimate: PoseEstimate | None = None
+        self.last_update = None  # the last SensorUpdateResult
+
+    # ------------------------------------------------------------------ state
+    @property
+    def has_map(self) -> bool:
+        return self.map is not None
+
+    @property
+    def ready(self) -> bool:
+        return self.map is not None and self.filter.initialized
+
+    @property
+    def estimate(self) -> PoseEstimate | None:
+        """The latest estimate, including odometry queued during a running sensor update."""
+        est = self._estimate
+        if est is None:
+            return None
+        with self._pending_lock:
+            pending = self._pending.copy()
+        if pending.any():
+            return PoseEstimate(est.stamp, compose(est.pose, pending), est.covariance)
+        return est
+
+    # ------------------------------------------------------------------ inputs
+    def set_map(self, occupancy_map: OccupancyMap) -> None:
+        """Use a (new) map. Particles are kept if they stay valid, else re-initialised."""
+        with self._lock:
+            self.filter.sensor_model.set_map(occupancy_map)
+            self.map = occupancy_map
+            if self.filter.initialized:
+                inside = ~occupancy_map.is_occupied_or_outside(self.filter.particles[:, :2])
+                if not inside.any():
+                    self.log.warning("new map: no particle lies in free space any more; waiting for a new initial pose")
+                    self.filter.initialized = False
+                    self._estimate = None
+            elif self.params.global_localization:
+                self._initialize_global_locked()
+
+    def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> None:
+        """(Re-)initialise the cloud around a pose; covariance (3×3 over x, y, θ) if given."""
+        cov = None
+        if covariance is not None and self.params.use_initialpose_covariance:
+            cov = np.asarray(covariance, dtype=float).reshape(3, 3)
+            if not (np.all(np.isfinite(cov)) and np.trace(cov) > 0):
+                cov = None
+        std = (self.params.initial_std_xy, self.params.initial_std_xy, self.params.initial_std_theta)
+        with self._lock:
+            self.filter.initialize_gaussian(pose, cov, std)
+            self._after_init(stamp)
+
+    def initialize_global(self, stamp: float = 0.0) -> bool:
+        """Spread particles uniformly over the free space (needs a map)."""
+        with self._lock:
+            return self._initialize_global_locked(stamp)
+
+    def _initialize_global_locked(self, stamp: float = 0.0) -> bool:
+        if self.map is None:
+            self.log.warning("global localization requested before a map arrived: will spread once it does")
+            return False
+        self.filter.initialize_uniform(self.map)
+        self._after_init(stamp)
+        return True
+
+    def _after_init(self, stamp: float) -> None:
+        with self._pending_lock:
+            self._pending[:] = 0.0
+        self._force_update = True
+        self._since_update[:] = 0.0
+        est = self.filter.estimate()
+        self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+
+    def on_odometry(self, stamp: float, vx: float, vy: float, wz: float) -> PoseEstimate | None:
+        """Apply the motion since the previous odometry message; returns the new estimate."""
+        last, self._last_odom_stamp = self._last_odom_stamp, stamp
+        if last is None or not self.ready:
+            return None
+        dt = stamp - last
+        if dt <= 0.0 or dt > self.max_odom_gap:
+            self.log.warning(f"odometry stamp jumped by {dt:+.3f} s: motion reference reset, particles not moved")
+            return None
+        delta = twist_to_delta(vx, vy, wz, dt)
+        if self._lock.acquire(blocking=False):
+            try:
+                self._apply_motion(delta)
+                est = self.filter.estimate()
+                self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+            finally:
+                self._lock.release()
+        else:  # a sensor update is running: queue the motion, predict from the last estimate
+            with self._pending_lock:
+                self._pending = compose(self._pending, delta)
+            if self._estimate is not None:
+                self._estimate.stamp = stamp
+        return self.estimate
+
+    def _apply_motion(self, delta) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, np.zeros(3)
+        if pending.any():
+            delta = compose(pending, delta)
+        self.filter.motion_update(delta)
+        self._since_update += (np.hypot(delta[0], delta[1]), abs(delta[2]))
+
+    def on_scan(self, stamp: float, ranges, angle_min: float, angle_max: float, angle_increment: float,
+                range_min: float, range_max: float) -> PoseEstimate | None:
+        """Sensor update (+ resampling) from a full scan; returns the new estimate, or None
+        when the filter is not ready or the car has not moved enough since the last update."""
+        if not self.ready:
+            return None
+        with self._lock:
+            self._apply_motion(np.zeros(3))
+            moved = (self._since_update[0] >= self.params.update_min_distance
+                     or self._since_update[1] >= self.params.update_min_angle)
+            if not (moved or self._force_update):
+                return None
+            scan = downsample_scan(ranges, angle_min, angle_max, angle_increment, range_min, range_max,
+                                   self.params.num_beams_per_particle)
+            if scan.ranges.size == 0:
+                self.log.warning("empty scan ignored")
+                return None
+            result = self.filter.sensor_update(scan.ranges, scan.angles)
+            self.last_update = result
+            if not result.ok:
+                self.log.warning("every particle has likelihood 0 for this scan: weights kept")
+                return None
+            self._force_update = False
+            self._since_update[:] = 0.0
+            est: Estimate = self.filter.estimate()
+            self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+            return self._estimate

@@ -1,0 +1,34 @@
+"""ament_python package `localization` (also pip-installable into a plain virtual environment)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "localization"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="localization maintainers",
+    maintainer_email="localization@example.com",
+    description="Monte Carlo Localization for car-like robots in a known 2D map (ROS 2 Jazzy).",
+    license="MIT",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "particle_filter = localization.particle_filter:main",
+            "localization-play = localization.play:main",
+            "localization-simulate = localization.simulator:main",
+            "localization-replay = localization.replay:main",
+            "localization-demo = localization.demo:main",
+        ],
+    },
+)
