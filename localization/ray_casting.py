@@ -71,7 +71,7 @@ class ExactRayCaster(RayCaster):
         h, w = self.blocking.shape
         start_blocked = self._blocked(ox, oy)
         result[start_blocked] = 0.0
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):
             step_x = np.where(dx > 0, 1, -1)
             step_y = np.where(dy > 0, 1, -1)
             t_dx = np.where(dx != 0, np.abs(1.0 / dx), np.inf)

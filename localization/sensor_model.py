@@ -73,9 +73,10 @@ class SensorModel:
         table = (self.alpha_hit * p_hit + self.alpha_short * p_short
                  + self.alpha_max * p_max + self.alpha_rand * p_rand)
         column_sums = table.sum(axis=0, keepdims=True)
-        if not np.all(column_sums > 0):
-            raise ValueError("sensor model alphas give an all-zero column; at least one alpha must be > 0")
-        self.sensor_model_table = table / column_sums
+        if not np.any(column_sums > 0):
+            raise ValueError("sensor model alphas are all zero; at least one must be > 0")
+        # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
+        self.sensor_model_table = np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
         with np.errstate(divide="ignore"):
             self._log_table = np.log(self.sensor_model_table)
         return self.sensor_model_table
