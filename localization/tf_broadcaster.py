@@ -81,6 +81,11 @@ class TransformBroadcaster:
         """``"tf2_ros"`` or ``"tf2_msgs"`` (the fallback publisher)."""
         return "tf2_ros" if self._tf2 is not None else "tf2_msgs"
 
+    @property
+    def publisher(self):
+        """The rclpy ``Publisher`` of ``TFMessage`` (e.g. for ``get_subscription_count()``)."""
+        return self._tf2.pub_tf if self._tf2 is not None else self._publisher
+
     def send(self, transforms: Iterable[TransformStamped]) -> None:
         transforms = list(transforms)
         if self.static:
@@ -93,7 +98,6 @@ class TransformBroadcaster:
 
     def destroy(self) -> None:
         """Destroy the underlying publisher (the node stays alive)."""
-        publisher = self._tf2.pub_tf if self._tf2 is not None else self._publisher
-        if publisher is not None:
-            self.node.destroy_publisher(publisher)
+        if self.publisher is not None:
+            self.node.destroy_publisher(self.publisher)
         self._tf2 = self._publisher = None

@@ -44,7 +44,7 @@ if ! "$PYTHON" -c "import setuptools" >/dev/null 2>&1; then
 fi
 "$PYTHON" -m pip install --quiet -r "$PKG_DIR/build-requirements.txt"
 
-echo "build_tf2_msgs: building $PKG_DIR (CMake + rosidl, about half a minute)"
+echo "build_tf2_msgs: building $PKG_DIR (CMake + rosidl, about 10 s)"
 # No build isolation: CMake must find the ROS wheels installed in this environment.
 # CMAKE_BUILD_PARALLEL_LEVEL: scikit-build-core otherwise builds with one job under make.
 CMAKE_BUILD_PARALLEL_LEVEL="${CMAKE_BUILD_PARALLEL_LEVEL:-$(nproc 2>/dev/null || echo 2)}" \
