@@ -21,7 +21,6 @@ setup(
     maintainer_email="localization@example.com",
     description="Monte Carlo Localization for car-like robots in a known 2D map (ROS 2 Jazzy).",
     license="MIT",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "particle_filter = localization.particle_filter:main",

@@ -43,12 +43,16 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   missing=()
   command -v cmake >/dev/null 2>&1 || missing+=(cmake)
   command -v g++ >/dev/null 2>&1 || missing+=(g++)
+  "$PY" -c "import os, sysconfig; assert os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" \
+    2>/dev/null || missing+=(python3-dev)
   if ((${#missing[@]})); then apt_install "${missing[@]}"; fi
   PYTHON="$PY" bash scripts/build_tf2_msgs.sh
   echo "$want" > "$stamp"
 fi
-"$PY" -m pip install --quiet --no-deps --no-build-isolation -e . 2>/dev/null \
-  || "$PY" -m pip install --quiet --no-deps -e .
+if ! "$PY" -m pip install --quiet --no-deps -e . >"$VENV/install.log" 2>&1; then
+  cat "$VENV/install.log" >&2
+  exit 1
+fi
 
 export PATH="$PWD/$VENV/bin:$PATH"
 case "$action" in
