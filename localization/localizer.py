@@ -19,7 +19,9 @@ is the last one composed with the queued motion, so odometry never waits for a s
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +29,7 @@ import numpy as np
 from .geometry import compose
 from .mcl import Estimate, MonteCarloLocalizer
 from .motion_model import MotionModel
-from .occupancy_map import OccupancyMap
+from .occupancy_map import MapError, OccupancyMap
 from .parameters import Parameters
 from .scan import downsample_scan
 from .sensor_model import SensorModel
@@ -69,12 +71,35 @@ def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
                                (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng)
 
 
+class ThrottledLog:
+    """Log each kind of message at most once per ``period`` seconds (wall clock), counting the
+    repeats, so a broken sensor at 40 Hz gives one clear line, not a flood."""
+
+    def __init__(self, logger: logging.Logger, period: float = 5.0):
+        self.logger, self.period = logger, period
+        self._last: dict[str, tuple[float, int]] = {}
+
+    def __call__(self, key: str, message: str, level: int = logging.WARNING) -> None:
+        now = time.monotonic()
+        last, repeats = self._last.get(key, (-np.inf, 0))
+        if now - last >= self.period:
+            suffix = f" ({repeats} more since the last report)" if repeats else ""
+            self.logger.log(level, message + suffix)
+            self._last[key] = (now, 0)
+        else:
+            self._last[key] = (last, repeats + 1)
+
+
 class Localizer:
     max_odom_gap = 1.0  # seconds: a longer silence resets the odometry reference
+    max_speed = 20.0  # m/s: faster odometry is a broken message, not a racecar
+    max_yaw_rate = 20.0  # rad/s
+    max_impossible_scans = 3  # this many all-zero-likelihood scans in a row trigger a global re-spread
 
     def __init__(self, params: Parameters | None = None, logger: logging.Logger | None = None):
         self.params = params if params is not None else Parameters()
         self.log = logger or logging.getLogger("localization")
+        self.warn = ThrottledLog(self.log)
         self.filter = build_filter(self.params)
         self.map: OccupancyMap | None = None
         self._lock = threading.Lock()
@@ -85,6 +110,7 @@ class Localizer:
         self._force_update = False
         self._estimate: PoseEstimate | None = None
         self.last_update = None  # the last SensorUpdateResult
+        self._impossible_scans = 0
 
     # ------------------------------------------------------------------ state
     @property
@@ -109,7 +135,10 @@ class Localizer:
 
     # ------------------------------------------------------------------ inputs
     def set_map(self, occupancy_map: OccupancyMap) -> None:
-        """Use a (new) map. Particles are kept if they stay valid, else re-initialised."""
+        """Use a (new) map. Particles are kept if they stay valid, else re-initialised.
+        A map without free space raises MapError and the previous map stays in use."""
+        if len(occupancy_map.free_cells) == 0:
+            raise MapError("map has no free cell (all unknown or occupied): ignored")
         with self._lock:
             self.filter.sensor_model.set_map(occupancy_map)
             self.map = occupancy_map
@@ -122,8 +151,20 @@ class Localizer:
             elif self.params.global_localization:
                 self._initialize_global_locked()
 
-    def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> None:
-        """(Re-)initialise the cloud around a pose; covariance (3×3 over x, y, θ) if given."""
+    def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
+        """(Re-)initialise the cloud around a pose; covariance (3×3 over x, y, θ) if given.
+
+        Returns False (and logs why) for a non-finite pose. A pose off the map or inside a wall is
+        moved to the nearest free cell, with a warning."""
+        pose = np.asarray(pose, dtype=float).reshape(3)
+        if not np.all(np.isfinite(pose)):
+            self.log.warning(f"initial pose {pose.tolist()} is not finite: ignored")
+            return False
+        if self.map is not None and not self.map.is_free(pose[None, :2])[0]:
+            nearest = self.map.nearest_free(pose[:2])
+            self.log.warning(f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}) is not in free space: "
+                             f"moved to the nearest free cell ({nearest[0]:.2f}, {nearest[1]:.2f})")
+            pose = np.array([nearest[0], nearest[1], pose[2]])
         cov = None
         if covariance is not None and self.params.use_initialpose_covariance:
             cov = np.asarray(covariance, dtype=float).reshape(3, 3)
@@ -133,6 +174,7 @@ class Localizer:
         with self._lock:
             self.filter.initialize_gaussian(pose, cov, std)
             self._after_init(stamp)
+        return True
 
     def initialize_global(self, stamp: float = 0.0) -> bool:
         """Spread particles uniformly over the free space (needs a map)."""
@@ -157,12 +199,22 @@ class Localizer:
 
     def on_odometry(self, stamp: float, vx: float, vy: float, wz: float) -> PoseEstimate | None:
         """Apply the motion since the previous odometry message; returns the new estimate."""
+        if not all(math.isfinite(v) for v in (stamp, vx, vy, wz)):
+            self.warn("odom-nan", f"odometry with a non-finite value ignored (t={stamp}, v=({vx}, {vy}), w={wz})")
+            return None
+        if math.hypot(vx, vy) > self.max_speed or abs(wz) > self.max_yaw_rate:
+            self.warn("odom-absurd", f"odometry with an absurd speed ignored (v=({vx:.1f}, {vy:.1f}) m/s, "
+                      f"w={wz:.1f} rad/s; limits {self.max_speed} m/s, {self.max_yaw_rate} rad/s)")
+            return None
         last, self._last_odom_stamp = self._last_odom_stamp, stamp
         if last is None or not self.ready:
+            if not self.ready:
+                self.warn("odom-not-ready", self._not_ready_reason("odometry"), logging.INFO)
             return None
         dt = stamp - last
         if dt <= 0.0 or dt > self.max_odom_gap:
-            self.log.warning(f"odometry stamp jumped by {dt:+.3f} s: motion reference reset, particles not moved")
+            self.warn("odom-jump", f"odometry stamp jumped by {dt:+.3f} s (bag loop or sensor restart): "
+                      "motion reference reset, particles not moved")
             return None
         delta = twist_to_delta(vx, vy, wz, dt)
         if self._lock.acquire(blocking=False):
@@ -187,12 +239,30 @@ class Localizer:
         self.filter.motion_update(delta)
         self._since_update += (np.hypot(delta[0], delta[1]), abs(delta[2]))
 
+    def _not_ready_reason(self, what: str) -> str:
+        if self.map is None:
+            return f"{what} ignored: no map received yet"
+        return f"{what} ignored: waiting for an initial pose (/initialpose) or global localization"
+
     def on_scan(self, stamp: float, ranges, angle_min: float, angle_max: float, angle_increment: float,
                 range_min: float, range_max: float) -> PoseEstimate | None:
         """Sensor update (+ resampling) from a full scan; returns the new estimate, or None
         when the filter is not ready or the car has not moved enough since the last update."""
         if not self.ready:
+            self.warn("scan-not-ready", self._not_ready_reason("scan"), logging.INFO)
             return None
+        ranges = np.asarray(ranges, dtype=float).ravel()
+        if ranges.size == 0:
+            self.warn("scan-empty", "scan with no ranges ignored")
+            return None
+        if not all(math.isfinite(v) for v in (stamp, angle_min, angle_max)):
+            self.warn("scan-angles", f"scan with non-finite stamp or angles ignored (t={stamp}, "
+                      f"angle_min={angle_min}, angle_max={angle_max})")
+            return None
+        if not (math.isfinite(range_min) and math.isfinite(range_max) and 0 <= range_min < range_max):
+            self.warn("scan-limits", f"scan range limits [{range_min}, {range_max}] are unusable: "
+                      f"using [0, {self.filter.sensor_model.max_range:.2f}] m")
+            range_min, range_max = 0.0, self.filter.sensor_model.max_range
         with self._lock:
             self._apply_motion(np.zeros(3))
             moved = (self._since_update[0] >= self.params.update_min_distance
@@ -201,14 +271,22 @@ class Localizer:
                 return None
             scan = downsample_scan(ranges, angle_min, angle_max, angle_increment, range_min, range_max,
                                    self.params.num_beams_per_particle)
-            if scan.ranges.size == 0:
-                self.log.warning("empty scan ignored")
+            if not np.isfinite(scan.ranges).any():
+                self.warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
                 return None
             result = self.filter.sensor_update(scan.ranges, scan.angles)
             self.last_update = result
             if not result.ok:
-                self.log.warning("every particle has likelihood 0 for this scan: weights kept")
+                self._impossible_scans += 1
+                if self._impossible_scans >= self.max_impossible_scans:
+                    self.log.warning(f"{self._impossible_scans} scans in a row gave every particle likelihood 0 "
+                                     "(all off the map or in walls): re-spreading particles over the free space")
+                    self._impossible_scans = 0
+                    self._initialize_global_locked(stamp)
+                else:
+                    self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
                 return None
+            self._impossible_scans = 0
             self._force_update = False
             self._since_update[:] = 0.0
             est: Estimate = self.filter.estimate()

@@ -218,6 +218,18 @@ class OccupancyMap:
         """True where world points lie in occupied cells or off the map."""
         return self.lookup(xy, self.occupied, outside=True)
 
+    def nearest_free(self, xy) -> np.ndarray:
+        """World (x, y) of the free cell centre nearest to a world point (on or off the map)."""
+        cells = self.free_cells
+        if len(cells) == 0:
+            raise MapError("map has no free cell")
+        cr = np.clip(self.world_to_grid(np.asarray(xy, dtype=float)), 0, [self.width - 1, self.height - 1])
+        def compute():
+            from scipy.ndimage import distance_transform_edt
+            return distance_transform_edt(~self.free, return_distances=False, return_indices=True)
+        rows, cols = self._cached("nearest_free_index", compute)
+        return self.grid_to_world(np.array([cols[cr[1], cr[0]], rows[cr[1], cr[0]]]))
+
     def distance_to_obstacle(self) -> np.ndarray:
         """Per-cell Euclidean distance (metres) to the nearest occupied cell."""
         def compute():

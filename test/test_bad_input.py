@@ -1,0 +1,139 @@
+"""Bad input reaching the localizer: a clear log line, no crash, no NaN, state kept sane."""
+import logging
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from helpers import corridor_map
+from localization.localizer import Localizer
+from localization.occupancy_map import MapError, OccupancyMap
+from localization.parameters import Parameters
+
+FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@pytest.fixture()
+def loc():
+    loc = Localizer(Parameters(num_particles=200, random_seed=1, ray_caster="distance_transform"))
+    loc.set_map(corridor_map())
+    loc.set_initial_pose([5.0, 1.5, 0.0])
+    return loc
+
+
+def good_scan(n=200):
+    return np.full(n, 1.0), -2.0, 2.0, 4.0 / (n - 1), 0.02, 10.0
+
+
+def assert_sane(loc):
+    assert np.all(np.isfinite(loc.filter.particles))
+    est = loc.estimate
+    assert est is not None and np.all(np.isfinite(est.pose)) and np.all(np.isfinite(est.covariance))
+
+
+@pytest.mark.parametrize("ranges", [
+    np.full(200, np.nan), np.full(200, np.inf), np.full(200, -np.inf), np.full(200, -1.0), np.zeros(200),
+    np.full(200, 1e300), np.array([]), np.r_[np.full(100, np.nan), np.full(100, 1.0)],
+])
+def test_broken_scans(loc, ranges, caplog):
+    _, a0, a1, inc, rmin, rmax = good_scan(max(len(ranges), 2))
+    with caplog.at_level(logging.INFO):
+        loc.on_odometry(0.0, 0.0, 0.0, 0.0)
+        loc.on_odometry(0.02, 1.0, 0.0, 0.0)
+        loc.on_scan(0.02, ranges, a0, a1, inc, rmin, rmax)
+    assert_sane(loc)
+
+
+def test_all_invalid_and_empty_scans_say_so(loc, caplog):
+    with caplog.at_level(logging.WARNING):
+        loc.on_scan(0.0, np.full(50, np.nan), -2.0, 2.0, 0.08, 0.02, 10.0)
+        loc.on_scan(0.0, np.array([]), -2.0, 2.0, 0.08, 0.02, 10.0)
+    assert "no valid range" in caplog.text and "no ranges" in caplog.text
+
+
+@pytest.mark.parametrize("angles", [(2.0, -2.0, -0.02), (-2.0, 2.0, 0.0), (np.nan, 2.0, 0.02), (-2.0, 2.0, np.inf)])
+def test_reversed_or_broken_angles(loc, angles):
+    ranges = np.full(201, 1.0)
+    loc.on_scan(0.0, ranges, *angles, 0.02, 10.0)
+    assert_sane(loc)
+
+
+def test_odometry_nan_absurd_and_backwards(loc, caplog):
+    loc.on_odometry(1.0, 0.0, 0.0, 0.0)
+    before = loc.filter.particles.copy()
+    with caplog.at_level(logging.WARNING):
+        assert loc.on_odometry(1.02, np.nan, 0.0, 0.0) is None
+        assert loc.on_odometry(1.04, 500.0, 0.0, 0.0) is None
+        assert loc.on_odometry(0.5, 1.0, 0.0, 0.0) is None  # backwards (bag loop)
+        assert loc.on_odometry(30.0, 1.0, 0.0, 0.0) is None  # gap of many seconds
+    assert np.array_equal(loc.filter.particles, before)
+    assert "non-finite" in caplog.text and "absurd" in caplog.text and "jumped" in caplog.text
+    assert loc.on_odometry(30.02, 1.0, 0.0, 0.0) is not None
+    assert_sane(loc)
+
+
+def test_initial_pose_nan_outside_and_in_wall(caplog):
+    loc = Localizer(Parameters(num_particles=100, random_seed=2, ray_caster="distance_transform"))
+    m = corridor_map()
+    loc.set_map(m)
+    with caplog.at_level(logging.WARNING):
+        assert loc.set_initial_pose([np.nan, 1.0, 0.0]) is False
+        assert not loc.ready
+        assert loc.set_initial_pose([50.0, 50.0, 0.0])  # far outside the map
+        assert m.is_free(loc.estimate.pose[None, :2])[0] or np.linalg.norm(loc.estimate.pose[:2] - [9.9, 2.45]) < 1
+        assert loc.set_initial_pose([5.0, 0.52, 0.0])  # inside the wall row
+        assert abs(loc.estimate.pose[1] - 0.575) < 0.3
+    assert "not finite" in caplog.text and "nearest free cell" in caplog.text
+
+
+def test_maps_without_free_space_are_rejected_and_old_map_kept(loc):
+    old = loc.map
+    for value in (-1, 100):
+        with pytest.raises(MapError):
+            loc.set_map(OccupancyMap(np.full((20, 20), value, dtype=np.int8), 0.05))
+    assert loc.map is old and loc.ready
+
+
+def test_new_map_of_another_size_while_running(loc):
+    loc.set_map(corridor_map(width_cells=400, height_cells=100, wall_rows=(20, 80)))
+    loc.on_scan(0.0, *good_scan())
+    assert_sane(loc)
+    # a map where no particle is valid any more: the filter waits for a new pose instead of guessing
+    loc.set_map(corridor_map(origin=(100.0, 100.0, 0.0)))
+    assert not loc.ready and loc.estimate is None
+
+
+def test_before_any_map(caplog):
+    loc = Localizer(Parameters(num_particles=50))
+    with caplog.at_level(logging.INFO):
+        assert loc.on_odometry(0.0, 1.0, 0.0, 0.0) is None
+        assert loc.on_scan(0.0, *good_scan()) is None
+    assert "no map" in caplog.text
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(stamp=FLOATS, vx=FLOATS, vy=FLOATS, wz=FLOATS, ranges=st.lists(FLOATS, max_size=60),
+       amin=FLOATS, amax=FLOATS, inc=FLOATS, rmin=FLOATS, rmax=FLOATS)
+def test_fuzz_callbacks_never_crash_or_emit_nan(loc, stamp, vx, vy, wz, ranges, amin, amax, inc, rmin, rmax):
+    out = loc.on_odometry(stamp, vx, vy, wz)
+    if out is not None:
+        assert np.all(np.isfinite(out.pose))
+    out = loc.on_scan(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax)
+    if out is not None:
+        assert np.all(np.isfinite(out.pose)) and np.all(np.isfinite(out.covariance))
+    assert np.all(np.isfinite(loc.filter.particles))
+
+
+def test_degenerate_filter_recovers_by_spreading_globally(caplog):
+    m = corridor_map()
+    loc = Localizer(Parameters(num_particles=300, random_seed=3, ray_caster="distance_transform"))
+    loc.set_map(m)
+    loc.set_initial_pose([5.0, 1.5, 0.0])
+    loc.filter.particles[:, :2] = [-50.0, -50.0]  # the car was carried off: every particle impossible
+    with caplog.at_level(logging.WARNING):
+        for k in range(3):
+            assert loc.on_scan(float(k), *good_scan()) is None
+    assert "re-spreading" in caplog.text
+    assert m.is_free(loc.filter.particles[:, :2]).mean() > 0.95
+    assert_sane(loc)
