@@ -169,7 +169,8 @@ class BagMessage:
             try:
                 self._msg = self._codec.deserialize(self._raw, self.msgtype)
             except (SerdeError, TypesysError, KeyError) as exc:
-                raise BagError(f"cannot deserialize {self.msgtype} message on {self.topic} at t={self.t_ns}: {exc}") from None
+                raise BagError(f"cannot deserialize {self.msgtype} message on {self.topic} "
+                               f"at t={self.t_ns}: {exc}") from None
         return self._msg
 
     @property
@@ -248,7 +249,8 @@ def _resolve_path(path) -> Path:
     return p
 
 
-_OPEN_ERRORS = (AnyReaderError, Rosbag1ReaderError, Rosbag2ReaderError, TypesysError, SerdeError, OSError, KeyError, EOFError)
+_OPEN_ERRORS = (AnyReaderError, Rosbag1ReaderError, Rosbag2ReaderError, TypesysError, SerdeError, OSError,
+                KeyError, EOFError)
 
 
 def _type_deps(fielddefs: dict, name: str, out: set) -> None:
@@ -337,7 +339,8 @@ class BagReader:
                 ext = c.ext
                 if hasattr(ext, "offered_qos_profiles"):
                     qos.extend(ext.offered_qos_profiles)
-                    latched = latched or any(q.durability == QosDurability.TRANSIENT_LOCAL for q in ext.offered_qos_profiles)
+                    latched = latched or any(q.durability == QosDurability.TRANSIENT_LOCAL
+                                             for q in ext.offered_qos_profiles)
                 elif getattr(ext, "latching", None):
                     latched = True
             out[name] = TopicInfo(name, msgtype, int(info.msgcount), tuple(qos), latched)
@@ -651,7 +654,10 @@ def make_laser_scan(typestore, t_ns: int, frame_id: str, ranges, *, angle_min: f
                     time_increment: float = 0.0, scan_time: float = 0.0):
     """``sensor_msgs/msg/LaserScan``; ``ranges`` / ``intensities`` become float32 arrays."""
     r = np.ascontiguousarray(ranges, dtype=np.float32).ravel()
-    i = np.zeros(0, dtype=np.float32) if intensities is None else np.ascontiguousarray(intensities, dtype=np.float32).ravel()
+    if intensities is None:
+        i = np.zeros(0, dtype=np.float32)
+    else:
+        i = np.ascontiguousarray(intensities, dtype=np.float32).ravel()
     return typestore.types["sensor_msgs/msg/LaserScan"](
         header=make_header(typestore, t_ns, frame_id), angle_min=float(angle_min), angle_max=float(angle_max),
         angle_increment=float(angle_increment), time_increment=float(time_increment), scan_time=float(scan_time),
@@ -683,8 +689,8 @@ def make_transform_stamped(typestore, t_ns: int, parent_frame: str, child_frame:
     else:
         qx, qy, qz, qw = (float(v) for v in quaternion)
         rot = T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)
-    tf = T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z)),
-                                          rotation=rot)
+    translation = T["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z))
+    tf = T["geometry_msgs/msg/Transform"](translation=translation, rotation=rot)
     return T["geometry_msgs/msg/TransformStamped"](header=make_header(typestore, t_ns, parent_frame),
                                                    child_frame_id=child_frame, transform=tf)
 
