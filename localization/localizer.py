@@ -66,7 +66,7 @@ def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
         squash_factor=params.squash_factor, num_beams_per_particle=params.num_beams_per_particle,
         scan_field_of_view=params.scan_field_of_view, lidar_scale_to_map_scale=params.lidar_scale_to_map_scale,
         laser_offset=(params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
-        ray_caster=params.ray_caster)
+        ray_caster=params.ray_caster, scan_theta_discretization=params.scan_theta_discretization)
     return MonteCarloLocalizer(motion, sensor, params.num_particles, params.resample_ess_fraction,
                                (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng)
 
@@ -104,6 +104,7 @@ class Localizer:
         self.map: OccupancyMap | None = None
         self._lock = threading.Lock()
         self._pending = np.zeros(3)  # odometry received during a sensor update
+        self._pending_stamp = -math.inf
         self._pending_lock = threading.Lock()
         self._last_odom_stamp: float | None = None
         self._since_update = np.zeros(2)  # distance, angle travelled since the last sensor update
@@ -128,9 +129,9 @@ class Localizer:
         if est is None:
             return None
         with self._pending_lock:
-            pending = self._pending.copy()
+            pending, pending_stamp = self._pending.copy(), self._pending_stamp
         if pending.any():
-            return PoseEstimate(est.stamp, compose(est.pose, pending), est.covariance)
+            return PoseEstimate(max(est.stamp, pending_stamp), compose(est.pose, pending), est.covariance)
         return est
 
     # ------------------------------------------------------------------ inputs
@@ -227,8 +228,7 @@ class Localizer:
         else:  # a sensor update is running: queue the motion, predict from the last estimate
             with self._pending_lock:
                 self._pending = compose(self._pending, delta)
-            if self._estimate is not None:
-                self._estimate.stamp = stamp
+                self._pending_stamp = stamp
         return self.estimate
 
     def _apply_motion(self, delta) -> None:

@@ -1,0 +1,166 @@
+"""Core -> ROS message builders for the node's outputs (and a map message for tests/simulators).
+
+They import the message packages but not rclpy, and never emit a NaN or an infinity:
+
+* ``odometry_msg`` / ``transform_msg`` return ``None`` for a non-finite pose (the caller skips
+  publishing); a non-finite covariance becomes "unknown" (``UNKNOWN_VARIANCE`` on the diagonal);
+* ``pose_array_msg`` drops non-finite particles and draws at most ``max_count`` of them.
+
+Stamps are ``builtin_interfaces/Time`` messages or float seconds (see ``time_msg``).
+"""
+from __future__ import annotations
+
+import array
+import threading
+from collections import OrderedDict
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseArray, Quaternion, TransformStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
+
+from .conversions import sec_to_stamp_parts, stamp_to_sec
+from .geometry import compose, inverse, yaw_to_quaternion
+from .occupancy_map import OccupancyMap
+
+UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
+COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+
+
+def time_msg(stamp) -> Time:
+    """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied)."""
+    if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
+        return Time(sec=int(stamp.sec), nanosec=int(stamp.nanosec))
+    t = float(stamp)
+    if not np.isfinite(t) or t < 0:
+        t = 0.0
+    sec, nanosec = sec_to_stamp_parts(t)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+class StampBook:
+    """Remembers the exact ``Time`` of recent input messages by their float-seconds value.
+
+    The core keeps stamps as float seconds, which cannot hold a 2022 epoch time to the
+    nanosecond; outputs are stamped with the exact input stamp when it is one of the last
+    ``size`` remembered, else with the rounded float."""
+
+    def __init__(self, size: int = 256):
+        self._size = size
+        self._book: OrderedDict[float, Time] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def remember(self, stamp) -> float:
+        t = stamp_to_sec(stamp)
+        with self._lock:
+            self._book[t] = time_msg(stamp)
+            self._book.move_to_end(t)
+            while len(self._book) > self._size:
+                self._book.popitem(last=False)
+        return t
+
+    def lookup(self, t: float) -> Time:
+        with self._lock:
+            exact = self._book.get(t)
+        return time_msg(exact if exact is not None else t)
+
+
+def _finite_pose(pose) -> np.ndarray | None:
+    pose = np.asarray(pose, dtype=float).reshape(-1)
+    if pose.size != 3 or not np.all(np.isfinite(pose)):
+        return None
+    return pose
+
+
+def pose_msg(pose) -> Pose:
+    """geometry_msgs/Pose of a finite planar pose [x, y, yaw]."""
+    x, y, yaw = (float(v) for v in pose)
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(yaw))
+    msg = Pose()
+    msg.position.x, msg.position.y, msg.position.z = x, y, 0.0
+    msg.orientation = Quaternion(x=qx, y=qy, z=qz, w=qw)
+    return msg
+
+
+def covariance_6x6(covariance) -> list[float]:
+    """The 3×3 (x, y, yaw) covariance as a row-major 6×6 ROS covariance (other entries 0).
+    Non-finite input (or the wrong shape) becomes ``UNKNOWN_VARIANCE`` on the x, y, yaw diagonal."""
+    out = np.zeros((6, 6))
+    cov = None if covariance is None else np.asarray(covariance, dtype=float)
+    if cov is None or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        for i in COV_INDEX:
+            out[i, i] = UNKNOWN_VARIANCE
+    else:
+        out[np.ix_(COV_INDEX, COV_INDEX)] = 0.5 * (cov + cov.T)
+    return [float(v) for v in out.ravel()]
+
+
+def odometry_msg(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> Odometry | None:
+    """nav_msgs/Odometry carrying the estimate (twist left zero); None if the pose is not finite."""
+    pose = _finite_pose(pose)
+    if pose is None:
+        return None
+    msg = Odometry()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose = pose_msg(pose)
+    msg.pose.covariance = covariance_6x6(covariance)
+    return msg
+
+
+def select_particles(particles, max_count: int) -> np.ndarray:
+    """The finite rows of ``particles`` (N, 3), thinned to at most ``max_count`` evenly spaced ones."""
+    p = np.asarray(particles, dtype=float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if max_count <= 0:
+        return p[:0]
+    if len(p) > max_count:
+        p = p[np.linspace(0, len(p) - 1, max_count).round().astype(np.intp)]
+    return p
+
+
+def pose_array_msg(particles, stamp, frame_id: str, max_count: int) -> PoseArray:
+    """geometry_msgs/PoseArray of (at most ``max_count``) particles."""
+    msg = PoseArray()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id
+    msg.poses = [pose_msg(p) for p in select_particles(particles, max_count)]
+    return msg
+
+
+def transform_msg(pose, stamp, parent_frame: str, child_frame: str) -> TransformStamped | None:
+    """geometry_msgs/TransformStamped parent -> child for a planar pose; None if not finite."""
+    pose = _finite_pose(pose)
+    if pose is None:
+        return None
+    p = pose_msg(pose)
+    msg = TransformStamped()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = parent_frame
+    msg.child_frame_id = child_frame
+    msg.transform.translation.x = p.position.x
+    msg.transform.translation.y = p.position.y
+    msg.transform.translation.z = 0.0
+    msg.transform.rotation = p.orientation
+    return msg
+
+
+def map_to_odom(estimate_pose, odom_pose) -> np.ndarray:
+    """The map -> odom transform (REP-105) that makes map -> odom -> base_link equal the estimate:
+    ``estimate ⊕ inverse(odom pose)``, both poses taken at the same time."""
+    return compose(np.asarray(estimate_pose, dtype=float), inverse(np.asarray(odom_pose, dtype=float)))
+
+
+def occupancy_grid_msg(occupancy_map: OccupancyMap, stamp=0.0, frame_id: str | None = None) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid of a map (what map_server would publish)."""
+    msg = OccupancyGrid()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id or occupancy_map.frame_id
+    msg.info.map_load_time = time_msg(stamp)
+    msg.info.resolution = float(occupancy_map.resolution)
+    msg.info.width = int(occupancy_map.width)
+    msg.info.height = int(occupancy_map.height)
+    msg.info.origin = pose_msg(occupancy_map.origin)
+    msg.data = array.array("b", np.ascontiguousarray(occupancy_map.data, dtype=np.int8).tobytes())
+    return msg

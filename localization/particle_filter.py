@@ -1,0 +1,289 @@
+"""The ``particle_filter`` ROS 2 node: wiring only (ROS messages -> converters -> Localizer ->
+message builders -> ROS messages). See docs/node.md for topics, frames and parameters.
+
+    ros2 run localization particle_filter --ros-args --params-file config/params.yaml
+    python -m localization.particle_filter --ros-args -p num_particles:=500
+
+Threading: a MultiThreadedExecutor with one callback group for scans, one for odometry and one
+for the map, /initialpose and the service, so a slow sensor update never delays the pose
+published on odometry (the Localizer queues odometry that arrives during a sensor update).
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+import threading
+from collections import Counter
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidParameterTypeException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import LaserScan
+from std_srvs.srv import Empty
+
+from . import messages
+from .conversions import pose_from_msg, pose_from_pose_with_covariance, scan_from_msg, twist_from_odometry
+from .localizer import Localizer, PoseEstimate
+from .occupancy_map import MapError, OccupancyMap
+from .parameters import BY_NAME, NODE_NAME, PARAMETERS, ParameterError, Parameters
+from .tf_broadcaster import TransformBroadcaster
+
+POSE_TOPIC = "/pf/pose/odom"
+PARTICLES_TOPIC = "/pf/particles"
+MAP_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+ODOM_QOS = QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+# scan and odometry QoS can be changed with the standard parameters, e.g.
+# qos_overrides./scan.subscription.reliability:=reliable
+QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
+# sensor-data QoS, but only the newest scan is kept: a scan waiting behind a slow update is stale, and
+# it would be applied to particles that odometry has already moved past its time
+SCAN_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
+TIME_JUMP = 1.0  # seconds: data stamps this far back (a bag replayed again) restart the TF stamps
+_TYPE_NAMES = {bool: "a boolean (true/false)", int: "an integer", float: "a float", str: "a string"}
+
+
+def declare_parameters(node: Node) -> Parameters:
+    """Declare every parameter of ``localization.parameters`` (read-only, with its description)
+    and return the validated values; raises ParameterError with every problem found."""
+    overrides = getattr(node, "_parameter_overrides", {}) or {}
+    values, problems = {}, []
+    for p in PARAMETERS:
+        desc = ParameterDescriptor(description=f"{p.description} [{p.rule}]" if p.rule else p.description,
+                                   read_only=True)
+        try:
+            values[p.name] = node.declare_parameter(p.name, p.default, desc).value
+        except InvalidParameterTypeException:
+            given = overrides[p.name].value if p.name in overrides else None
+            if isinstance(p.default, float) and isinstance(given, int) and not isinstance(given, bool):
+                values[p.name] = node.declare_parameter(p.name, float(given), desc, ignore_override=True).value
+            else:
+                problems.append(f"{p.name}={given!r} must be {_TYPE_NAMES[type(p.default)]}"
+                                + (f" ({p.rule})" if p.rule else ""))
+    unknown = sorted(n for n in overrides if n not in BY_NAME and n != "use_sim_time"
+                     and not n.startswith("qos_overrides."))
+    if unknown:
+        node.get_logger().warning(f"unknown parameters ignored: {', '.join(unknown)}")
+    try:
+        params = Parameters(values)
+    except ParameterError as exc:
+        problems.append(str(exc).removeprefix("invalid parameters: "))
+    if problems:
+        raise ParameterError("invalid parameters: " + "; ".join(problems))
+    return params
+
+
+class _RclpyHandler(logging.Handler):
+    """Forwards standard-library log records (the ROS-free core logs that way) to a ROS logger."""
+
+    def __init__(self, ros_logger):
+        super().__init__()
+        self.ros_logger = ros_logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message, level = self.format(record), record.levelno
+            if level >= logging.ERROR:
+                self.ros_logger.error(message)
+            elif level >= logging.WARNING:
+                self.ros_logger.warning(message)
+            elif level >= logging.INFO:
+                self.ros_logger.info(message)
+            else:
+                self.ros_logger.debug(message)
+        except Exception:  # noqa: BLE001 - logging must never break a callback
+            self.handleError(record)
+
+
+def stdlib_logger(node: Node) -> logging.Logger:
+    """A ``logging.Logger`` (own instance, not in the global registry) writing to the node's logger."""
+    logger = logging.Logger(f"localization.{node.get_name()}")
+    logger.addHandler(_RclpyHandler(node.get_logger()))
+    logger.setLevel(logging.DEBUG if node.get_logger().is_enabled_for(rclpy.logging.LoggingSeverity.DEBUG)
+                    else logging.INFO)
+    return logger
+
+
+def _counted(key: str):
+    """Count a callback in ``node.counts[key]`` once it has finished (diagnostics; tests wait on it)."""
+    def decorate(callback):
+        @functools.wraps(callback)
+        def counted(self, *args):
+            try:
+                return callback(self, *args)
+            finally:
+                self.counts[key] += 1
+        return counted
+    return decorate
+
+
+class ParticleFilterNode(Node):
+    def __init__(self, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        try:
+            self.params = declare_parameters(self)
+        except ParameterError as exc:
+            self.get_logger().fatal(str(exc))
+            self.destroy_node()
+            raise
+        p = self.params
+        self.localizer = Localizer(p, stdlib_logger(self))
+        self.counts = Counter()  # messages handled per input (diagnostics, tests)
+        self.stamps = messages.StampBook()
+        self._odom_lock = threading.Lock()  # pairs the estimate with the odometry pose (map -> odom)
+        self._odom_pose = None
+        self._tf_lock = threading.Lock()
+        self._last_tf_stamp = -np.inf
+        self._last_data_stamp = None
+
+        scan_group, odom_group, control_group = (MutuallyExclusiveCallbackGroup() for _ in range(3))
+        self.pose_pub = self.create_publisher(Odometry, POSE_TOPIC, 10)
+        self.particles_pub = self.create_publisher(PoseArray, PARTICLES_TOPIC, 5)
+        self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
+        self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS, callback_group=control_group)
+        self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10,
+                                 callback_group=control_group)
+        self.create_subscription(LaserScan, p.scan_topic, self.on_scan, SCAN_QOS,
+                                 callback_group=scan_group, qos_overriding_options=QOS_OVERRIDES)
+        self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS, callback_group=odom_group,
+                                 qos_overriding_options=QOS_OVERRIDES)
+        self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global,
+                            callback_group=control_group)
+        self.get_logger().info(
+            f"particle filter ready for input: {p.num_particles} particles, map {p.map_topic}, scans "
+            f"{p.scan_topic}, odometry {p.odom_topic}; publishing {POSE_TOPIC}, {PARTICLES_TOPIC}, TF {p.publish_tf}")
+
+    # ------------------------------------------------------------------ inputs
+    @_counted("map")
+    def on_map(self, msg: OccupancyGrid) -> None:
+        try:
+            occupancy_map = OccupancyMap.from_msg(msg)
+        except MapError as exc:
+            self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
+            return
+        if occupancy_map.frame_id != self.params.map_frame:
+            self.get_logger().warning(f"map frame {occupancy_map.frame_id!r} differs from map_frame "
+                                      f"{self.params.map_frame!r}; using it as {self.params.map_frame!r}")
+        replacing = self.localizer.has_map
+        try:
+            self.localizer.set_map(occupancy_map)
+        except MapError as exc:
+            self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
+            return
+        self.get_logger().info(f"{'new ' if replacing else ''}map {occupancy_map.width}x{occupancy_map.height} "
+                               f"cells at {occupancy_map.resolution:.4f} m")
+        if self.localizer.ready and not replacing:  # global localization, or a pose that came first
+            self._publish_particles(self._last_data_stamp or 0.0)
+
+    @_counted("initialpose")
+    def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
+        data = pose_from_pose_with_covariance(msg)
+        if data.frame_id not in ("", self.params.map_frame):
+            self.get_logger().warning(f"initial pose in frame {data.frame_id!r} ignored: it must be in the map "
+                                      f"frame {self.params.map_frame!r}")
+            return
+        stamp = self.stamps.remember(msg.header.stamp) if data.stamp > 0 else (self._last_data_stamp or 0.0)
+        if not self.localizer.set_initial_pose(data.pose, data.covariance, stamp):
+            return  # not finite: the Localizer said why
+        x, y, th = data.pose
+        self.get_logger().info(f"initial pose ({x:.2f}, {y:.2f}, {th:.2f}): particles re-initialised")
+        if self.localizer.ready:
+            self._publish_particles(stamp)
+
+    @_counted("reinitialize_global")
+    def on_reinitialize_global(self, request, response):
+        stamp = self._last_data_stamp or self.get_clock().now().nanoseconds * 1e-9
+        if self.localizer.initialize_global(stamp):
+            self.get_logger().info("global localization: particles spread over the free space of the map")
+            self._publish_particles(stamp)
+        return response
+
+    @_counted("odom")
+    def on_odometry(self, msg: Odometry) -> None:
+        twist = twist_from_odometry(msg)
+        stamp = self.stamps.remember(msg.header.stamp)
+        odom_pose = pose_from_msg(msg.pose.pose)
+        with self._odom_lock:
+            est = self.localizer.on_odometry(stamp, twist.vx, twist.vy, twist.wz)
+            self._odom_pose = odom_pose
+        self._last_data_stamp = stamp
+        if est is not None:  # None before a map and an initial pose (the Localizer logs that, throttled)
+            self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
+
+    @_counted("scan")
+    def on_scan(self, msg: LaserScan) -> None:
+        s = scan_from_msg(msg)
+        stamp = self.stamps.remember(msg.header.stamp)
+        est = self.localizer.on_scan(stamp, s.ranges, s.angle_min, s.angle_max, s.angle_increment,
+                                     s.range_min, s.range_max)
+        self._last_data_stamp = stamp
+        if est is not None:  # None when not ready, or no update was due
+            with self._odom_lock:  # an estimate and odometry pose that belong together
+                now, odom_pose = self.localizer.estimate, self._odom_pose
+            # re-stamped: odometry arriving meanwhile may re-stamp the Localizer's estimate object
+            self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose, now)
+            self._publish_particles(stamp)
+
+    # ------------------------------------------------------------------ outputs
+    def _publish_pose(self, est, odom_pose, est_with_odom=None) -> None:
+        p, stamp = self.params, self.stamps.lookup(est.stamp)
+        msg = messages.odometry_msg(est.pose, est.covariance, stamp, p.map_frame, p.particle_filter_frame)
+        if msg is None:
+            self.get_logger().warning("non-finite estimate not published", throttle_duration_sec=5.0)
+            return
+        self.pose_pub.publish(msg)
+        if self.tf is None:
+            return
+        if p.publish_tf == "map_to_odom":
+            if odom_pose is None:
+                return
+            pose = messages.map_to_odom((est_with_odom or est).pose, odom_pose)
+            tf = messages.transform_msg(pose, stamp, p.map_frame, p.odom_frame)
+        else:
+            tf = messages.transform_msg(est.pose, stamp, p.map_frame, p.particle_filter_frame)
+        with self._tf_lock:  # TF stamps only move forward (no TF_REPEATED_DATA), unless time jumps back
+            if tf is None or self._last_tf_stamp - TIME_JUMP < est.stamp <= self._last_tf_stamp:
+                return
+            self._last_tf_stamp = est.stamp
+            self.tf.send([tf])
+
+    def _publish_particles(self, stamp: float) -> None:
+        if self.params.max_particles_published > 0:
+            self.particles_pub.publish(messages.pose_array_msg(
+                self.localizer.filter.particles, self.stamps.lookup(stamp), self.params.map_frame,
+                self.params.max_particles_published))
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = ParticleFilterNode()
+    except ParameterError:
+        rclpy.try_shutdown()
+        return 1
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

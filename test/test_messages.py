@@ -1,0 +1,90 @@
+"""Core -> ROS message builders (localization.messages): content, frames, stamps, NaN guards."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("nav_msgs.msg")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+
+from localization import messages  # noqa: E402
+from localization.conversions import pose_from_msg, stamp_to_sec  # noqa: E402
+from localization.geometry import compose  # noqa: E402
+from localization.occupancy_map import OccupancyMap  # noqa: E402
+
+
+def test_odometry_msg_carries_pose_covariance_frames_and_stamp():
+    cov = np.array([[0.04, 0.01, 0.0], [0.01, 0.09, 0.002], [0.0, 0.002, 0.01]])
+    msg = messages.odometry_msg([1.0, -2.0, 3.0], cov, Time(sec=5, nanosec=7), "map", "base_link_pf")
+    assert (msg.header.frame_id, msg.child_frame_id) == ("map", "base_link_pf")
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (5, 7)
+    np.testing.assert_allclose(pose_from_msg(msg.pose.pose), [1.0, -2.0, 3.0], atol=1e-12)
+    c6 = np.array(msg.pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(c6[np.ix_([0, 1, 5], [0, 1, 5])], cov)
+    assert c6[2, 2] == c6[3, 3] == c6[4, 4] == 0.0
+
+
+@pytest.mark.parametrize("bad", [[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [0.0, 0.0, -math.inf]])
+def test_non_finite_pose_gives_no_message(bad):
+    assert messages.odometry_msg(bad, np.eye(3), 1.0, "map", "b") is None
+    assert messages.transform_msg(bad, 1.0, "map", "b") is None
+
+
+def test_non_finite_covariance_is_published_as_unknown():
+    msg = messages.odometry_msg([0.0, 0.0, 0.0], np.full((3, 3), np.nan), 1.0, "map", "b")
+    c6 = np.array(msg.pose.covariance).reshape(6, 6)
+    assert np.all(np.isfinite(c6))
+    assert c6[0, 0] == c6[1, 1] == c6[5, 5] == messages.UNKNOWN_VARIANCE
+
+
+def test_pose_array_drops_non_finite_particles_and_caps_the_count():
+    particles = np.column_stack([np.arange(1000.0), np.zeros(1000), np.zeros(1000)])
+    particles[10] = [np.nan, 0, 0]
+    msg = messages.pose_array_msg(particles, 2.5, "map", 100)
+    assert msg.header.frame_id == "map" and len(msg.poses) == 100
+    xs = [p.position.x for p in msg.poses]
+    assert all(math.isfinite(x) for x in xs) and xs[0] == 0.0 and xs[-1] == 999.0  # spread over the cloud
+    assert len(messages.pose_array_msg(particles[:50], 2.5, "map", 100).poses) == 49  # the NaN one dropped
+    assert messages.pose_array_msg(particles, 2.5, "map", 0).poses == []
+
+
+def test_transform_msg():
+    t = messages.transform_msg([2.0, 3.0, -1.0], 4.25, "map", "base_link_pf")
+    assert (t.header.frame_id, t.child_frame_id) == ("map", "base_link_pf")
+    assert stamp_to_sec(t.header.stamp) == 4.25
+    assert (t.transform.translation.x, t.transform.translation.y, t.transform.translation.z) == (2.0, 3.0, 0.0)
+    q = t.transform.rotation
+    assert math.isclose(2 * math.atan2(q.z, q.w), -1.0)
+
+
+def test_map_to_odom_composes_back_to_the_estimate():
+    estimate, odom = np.array([4.0, -1.0, 2.5]), np.array([1.5, 0.3, -0.7])
+    m2o = messages.map_to_odom(estimate, odom)
+    np.testing.assert_allclose(compose(m2o, odom), estimate, atol=1e-12)
+    np.testing.assert_allclose(messages.map_to_odom(odom, odom), [0, 0, 0], atol=1e-12)
+
+
+def test_time_msg_and_stamp_book_keep_exact_nanoseconds():
+    assert messages.time_msg(math.nan).sec == 0 and messages.time_msg(-1.0).sec == 0
+    book = messages.StampBook(size=2)
+    exact = Time(sec=1_700_000_000, nanosec=123_456_789)
+    t = book.remember(exact)
+    got = book.lookup(t)
+    assert (got.sec, got.nanosec) == (exact.sec, exact.nanosec)
+    book.remember(Time(sec=1, nanosec=0))
+    book.remember(Time(sec=2, nanosec=0))  # evicts the oldest
+    rounded = book.lookup(t)  # falls back to the float, which cannot hold every nanosecond
+    assert rounded.sec == exact.sec and abs(rounded.nanosec - exact.nanosec) < 1000
+
+
+def test_occupancy_grid_msg_round_trips():
+    data = np.full((4, 6), -1, dtype=np.int8)
+    data[1:3, 1:5] = 0
+    data[0, 0] = 100
+    m = OccupancyMap(data, 0.05, (1.0, 2.0, 0.5), "map")
+    back = OccupancyMap.from_msg(messages.occupancy_grid_msg(m))
+    np.testing.assert_array_equal(back.data, data)
+    assert back.resolution == 0.05 and np.allclose(back.origin, m.origin) and back.frame_id == "map"
