@@ -16,6 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import wrap_angle
+
+try:  # a compiled single pass when numba is there (pinned); the numpy code below otherwise
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
 from .motion_model import MotionModel
 from .occupancy_map import OccupancyMap
 from .sensor_model import SensorModel
@@ -109,6 +114,17 @@ class MonteCarloLocalizer:
         if weights is None:
             weights = self.weights
         n = self.num_particles
+        if _resample_kernel is not None and self.particles.shape == (n, 3) and len(weights) == n:
+            # one compiled O(N) pass: the same draws, indices and arithmetic as the numpy code below
+            u0 = self.rng.random()
+            rough = self.roughening.any()
+            noise = self.rng.standard_normal((n, 3)) if rough else _NO_NOISE
+            out = np.empty((n, 3))
+            _resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
+                             self.roughening, out)
+            self.particles = out
+            self.log_weights = np.full(n, -np.log(n))
+            return
         positions = (self.rng.random() + np.arange(n)) / n
         cumulative = np.cumsum(weights)
         cumulative[-1] = 1.0
@@ -135,3 +151,34 @@ class MonteCarloLocalizer:
         diff[:, 2] = wrap_angle(diff[:, 2])
         cov = (diff * w[:, None]).T @ diff
         return Estimate(np.array([x, y, th]), cov)
+
+
+_NO_NOISE = np.zeros((0, 3))
+
+if njit is not None:
+    @njit(cache=True, nogil=True)
+    def _resample_kernel(particles, weights, u0, noise, roughening, out):  # pragma: no cover - compiled
+        """Systematic resampling by a merge walk: out[j] = particles[i_j] (+ noise[j] · roughening,
+        θ wrapped), i_j = the first i with cumsum(weights)[i] > (u0 + j) / n (the last entry taken
+        as 1), as ``np.searchsorted(..., side="right")``. ``noise`` of length 0: no roughening."""
+        n = particles.shape[0]
+        rough = noise.shape[0] == n
+        two_pi = 2.0 * np.pi
+        i = 0
+        cumulative = 1.0 if n == 1 else weights[0]
+        for j in range(n):
+            position = (u0 + j) / n
+            while i < n - 1 and cumulative <= position:
+                i += 1
+                cumulative = 1.0 if i == n - 1 else cumulative + weights[i]
+            if rough:
+                out[j, 0] = particles[i, 0] + noise[j, 0] * roughening[0]
+                out[j, 1] = particles[i, 1] + noise[j, 1] * roughening[1]
+                w = (particles[i, 2] + noise[j, 2] * roughening[2] + np.pi) % two_pi - np.pi
+                out[j, 2] = w + two_pi if w <= -np.pi else w  # as geometry.wrap_angle
+            else:
+                out[j, 0] = particles[i, 0]
+                out[j, 1] = particles[i, 1]
+                out[j, 2] = particles[i, 2]
+else:  # pragma: no cover
+    _resample_kernel = None
