@@ -104,12 +104,14 @@ class SensorModel:
             self.ray_caster = ExactRayCaster(occupancy_map, self.max_range)
         elif kind == "distance_transform":
             self.ray_caster = DistanceTransformRayCaster(occupancy_map, self.max_range)
-        elif kind == "lookup_table":
+        elif kind in ("lookup_table", "lookup_table_exact"):  # _exact: the table plus an exact finish per beam
             from .range_table import LookupTableRayCaster
             self.ray_caster = LookupTableRayCaster.for_map(occupancy_map, self.max_range,
-                                                           theta_bins=self.scan_theta_discretization)
+                                                           theta_bins=self.scan_theta_discretization,
+                                                           refine=1.0 if kind == "lookup_table_exact" else 0.0)
         else:
-            raise ValueError(f"unknown ray caster {kind!r} (lookup_table, distance_transform or exact)")
+            raise ValueError(f"unknown ray caster {kind!r} (lookup_table, lookup_table_exact, distance_transform "
+                             "or exact)")
 
     # ------------------------------------------------------------------ evaluation
     def default_angles(self, num_beams: int) -> np.ndarray:
