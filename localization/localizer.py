@@ -10,7 +10,10 @@ It owns the map, the models and the particle filter, and turns a stream of
 - scan: downsampled, then a sensor update (+ resampling) once the car has moved
   ``update_min_distance`` / ``update_min_angle`` since the last one (always right after an
   initialisation, so a parked car's cloud still tightens once);
-- nothing happens before a map and an initial pose (or a global initialisation) have arrived.
+- nothing happens before a map and an initial pose (or a global initialisation) have arrived;
+- health and recovery (``localization.health``): after each sensor update of a converged cloud the
+  estimate is scored against the scan (``health``); a lost filter is re-spread over the free space
+  with ``global_num_particles``, which shrink back to ``num_particles`` once the cloud converges.
 
 Thread safety: the node may call ``on_odometry`` while ``on_scan`` runs. Odometry that arrives
 during a sensor update is queued and applied before the next update, and the returned estimate
@@ -27,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import compose
+from .health import AgreementScorer, HealthMonitor, cloud_spread
 from .mcl import Estimate, MonteCarloLocalizer
 from .motion_model import MotionModel
 from .occupancy_map import MapError, OccupancyMap
@@ -107,11 +111,16 @@ class Localizer:
         self._pending_stamp = -math.inf
         self._pending_lock = threading.Lock()
         self._last_odom_stamp: float | None = None
+        self._odom_before_jump: float | None = None  # the reference before a stamp jump (one bad stamp?)
         self._since_update = np.zeros(2)  # distance, angle travelled since the last sensor update
         self._force_update = False
         self._estimate: PoseEstimate | None = None
         self.last_update = None  # the last SensorUpdateResult
         self._impossible_scans = 0
+        self.health_monitor = HealthMonitor.from_params(self.params)
+        self._scorer: AgreementScorer | None = None
+        self.global_mode = False  # particles spread globally (start, service or recovery), not yet converged
+        self.recoveries = 0  # re-spreads after the filter was judged lost (or every particle impossible)
 
     # ------------------------------------------------------------------ state
     @property
@@ -121,6 +130,12 @@ class Localizer:
     @property
     def ready(self) -> bool:
         return self.map is not None and self.filter.initialized
+
+    @property
+    def health(self) -> float:
+        """Scan-map agreement of the estimate, fast average in [0, 1] (see localization.health);
+        NaN before the first sensor update of a converged cloud."""
+        return self.health_monitor.health
 
     @property
     def estimate(self) -> PoseEstimate | None:
@@ -143,6 +158,8 @@ class Localizer:
         with self._lock:
             self.filter.sensor_model.set_map(occupancy_map)
             self.map = occupancy_map
+            self._scorer = AgreementScorer(occupancy_map, self.filter.sensor_model.laser_offset)
+            self.health_monitor.reset()
             if self.filter.initialized:
                 inside = ~occupancy_map.is_occupied_or_outside(self.filter.particles[:, :2])
                 if not inside.any():
@@ -173,6 +190,8 @@ class Localizer:
                 cov = None
         std = (self.params.initial_std_xy, self.params.initial_std_xy, self.params.initial_std_theta)
         with self._lock:
+            self.filter.resize(self.params.num_particles)
+            self.global_mode = False
             self.filter.initialize_gaussian(pose, cov, std)
             self._after_init(stamp)
         return True
@@ -186,11 +205,14 @@ class Localizer:
         if self.map is None:
             self.log.warning("global localization requested before a map arrived: will spread once it does")
             return False
+        self.filter.resize(self.params.global_num_particles)
         self.filter.initialize_uniform(self.map)
+        self.global_mode = True
         self._after_init(stamp)
         return True
 
     def _after_init(self, stamp: float) -> None:
+        self.health_monitor.reset(keep_slow=True)
         with self._pending_lock:
             self._pending[:] = 0.0
         self._force_update = True
@@ -213,7 +235,11 @@ class Localizer:
                 self.warn("odom-not-ready", self._not_ready_reason("odometry"), logging.INFO)
             return None
         dt = stamp - last
+        before_jump, self._odom_before_jump = self._odom_before_jump, None
+        if not 0.0 < dt <= self.max_odom_gap and before_jump is not None and 0.0 < stamp - before_jump <= self.max_odom_gap:
+            dt = stamp - before_jump  # the jump was one message with a bad stamp: continue from before it
         if dt <= 0.0 or dt > self.max_odom_gap:
+            self._odom_before_jump = last
             self.warn("odom-jump", f"odometry stamp jumped by {dt:+.3f} s (bag loop or sensor restart): "
                       "motion reference reset, particles not moved")
             return None
@@ -239,6 +265,28 @@ class Localizer:
         self.filter.motion_update(delta)
         self._since_update += (np.hypot(delta[0], delta[1]), abs(delta[2]))
 
+    def _check_health(self, est, scan, range_min: float, range_max: float, stamp: float):
+        """After a sensor update (lock held): shrink a converged global cloud back to num_particles;
+        score a converged estimate against the scan and re-spread globally when the filter is lost."""
+        if self.global_mode:
+            if cloud_spread(est.covariance) >= self.params.global_converged_std:
+                return est  # still spread: the mean pose of many hypotheses says nothing yet
+            self.global_mode = False
+            self.filter.resize(self.params.num_particles)
+            self.health_monitor.reset(keep_slow=True)
+            self.log.info(f"global localization converged at ({est.pose[0]:.2f}, {est.pose[1]:.2f}, "
+                          f"{est.pose[2]:.2f}): {self.params.num_particles} particles")
+        agreement = self._scorer.score(est.pose, scan.ranges, scan.angles, range_min, range_max)
+        if self.health_monitor.update(agreement) and self.params.recovery:
+            m = self.health_monitor
+            self.log.warning(f"localization lost: scan-map agreement {m.fast:.2f} (long-term {m.slow:.2f}) for "
+                             f"{m.low_count} updates; re-spreading {self.params.global_num_particles} particles "
+                             "over the free space (recovery)")
+            self.recoveries += 1
+            self._initialize_global_locked(stamp)
+            est = self.filter.estimate()
+        return est
+
     def _not_ready_reason(self, what: str) -> str:
         if self.map is None:
             return f"{what} ignored: no map received yet"
@@ -258,6 +306,11 @@ class Localizer:
         if not all(math.isfinite(v) for v in (stamp, angle_min, angle_max)):
             self.warn("scan-angles", f"scan with non-finite stamp or angles ignored (t={stamp}, "
                       f"angle_min={angle_min}, angle_max={angle_max})")
+            return None
+        last_odom = self._last_odom_stamp
+        if last_odom is not None and stamp < last_odom - self.max_odom_gap:
+            self.warn("scan-stale", f"scan stamped {last_odom - stamp:.2f} s before the latest odometry ignored "
+                      "(a clock jump or a stale message; odometry going back too resets the reference)")
             return None
         if not (math.isfinite(range_min) and math.isfinite(range_max) and 0 <= range_min < range_max):
             self.warn("scan-limits", f"scan range limits [{range_min}, {range_max}] are unusable: "
@@ -282,6 +335,7 @@ class Localizer:
                     self.log.warning(f"{self._impossible_scans} scans in a row gave every particle likelihood 0 "
                                      "(all off the map or in walls): re-spreading particles over the free space")
                     self._impossible_scans = 0
+                    self.recoveries += 1
                     self._initialize_global_locked(stamp)
                 else:
                     self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
@@ -290,5 +344,6 @@ class Localizer:
             self._force_update = False
             self._since_update[:] = 0.0
             est: Estimate = self.filter.estimate()
+            est = self._check_health(est, scan, range_min, range_max, stamp)
             self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
             return self._estimate

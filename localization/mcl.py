@@ -82,6 +82,20 @@ class MonteCarloLocalizer:
         self.particles[:, 2] = self.rng.uniform(-np.pi, np.pi, self.num_particles)
         self._reset_weights()
 
+    def resize(self, num_particles: int) -> None:
+        """Change the particle count. An initialised cloud is resampled (systematic, by weight) to
+        the new count, so its distribution is kept; the next initialisation uses the new count."""
+        n = int(num_particles)
+        if n < 1:
+            raise ValueError(f"num_particles must be >= 1, got {n}")
+        if self.initialized and n != self.num_particles:
+            cumulative = np.cumsum(self.weights)
+            cumulative[-1] = 1.0
+            idx = np.searchsorted(cumulative, (self.rng.random() + np.arange(n)) / n, side="right")
+            self.particles = self.particles[np.minimum(idx, self.num_particles - 1)]
+            self.log_weights = np.full(n, -np.log(n))
+        self.num_particles = n
+
     def _reset_weights(self) -> None:
         self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
         self.initialized = True

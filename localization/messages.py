@@ -18,6 +18,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, PoseArray, Quaternion, TransformStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
+from std_msgs.msg import Float32
 
 from .conversions import sec_to_stamp_parts, stamp_to_sec
 from .geometry import compose, inverse, yaw_to_quaternion
@@ -150,6 +151,14 @@ def map_to_odom(estimate_pose, odom_pose) -> np.ndarray:
     """The map -> odom transform (REP-105) that makes map -> odom -> base_link equal the estimate:
     ``estimate ⊕ inverse(odom pose)``, both poses taken at the same time."""
     return compose(np.asarray(estimate_pose, dtype=float), inverse(np.asarray(odom_pose, dtype=float)))
+
+
+def health_msg(health: float) -> Float32 | None:
+    """std_msgs/Float32 of the filter health in [0, 1] (``/pf/health``); None when not finite."""
+    h = float(health)
+    if not np.isfinite(h):
+        return None
+    return Float32(data=min(max(h, 0.0), 1.0))
 
 
 def occupancy_grid_msg(occupancy_map: OccupancyMap, stamp=0.0, frame_id: str | None = None) -> OccupancyGrid:

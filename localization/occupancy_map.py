@@ -175,8 +175,11 @@ class OccupancyMap:
         return out
 
     def world_to_grid(self, xy) -> np.ndarray:
-        """World (x, y) -> integer (col, row) indices (may lie outside the grid)."""
-        return np.floor(self.world_to_grid_continuous(xy)).astype(np.int64)
+        """World (x, y) -> integer (col, row) indices (may lie outside the grid; a non-finite
+        coordinate maps to -1, i.e. outside)."""
+        g = self.world_to_grid_continuous(xy)
+        g = np.where(np.isfinite(g), np.clip(g, -2.0**40, 2.0**40), -1.0)
+        return np.floor(g).astype(np.int64)
 
     def grid_to_world(self, colrow) -> np.ndarray:
         """Integer (col, row) indices -> world (x, y) of the cell centres."""

@@ -83,6 +83,22 @@ PARAMETERS = [
           lambda v: isinstance(v, bool), "true or false"),
     Param("global_localization", False, "start with particles spread uniformly over free space (no initial pose "
           "needed)", lambda v: isinstance(v, bool), "true or false"),
+    # --- global localization and recovery (localization/health.py)
+    Param("global_num_particles", 40000, "particles used while globally localizing or recovering (uniform spread "
+          "over free space); the cloud shrinks back to num_particles once it has converged",
+          lambda v: isinstance(v, int) and 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
+    Param("global_converged_std", 0.5, "a global spread has converged when the cloud's position std (m, largest "
+          "axis) falls below this", _positive, "> 0"),
+    Param("recovery", True, "detect a lost filter (scan-map agreement, see health_*) and re-spread particles "
+          "globally (kidnapped robot)", lambda v: isinstance(v, bool), "true or false"),
+    Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "
+          "health)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),
+    Param("health_slow_alpha", 0.02, "weight of each new agreement in the slow average", lambda v: _fraction(v) and v > 0,
+          "in (0, 1]"),
+    Param("health_lost_floor", 0.35, "lost when the fast average stays below this agreement ...", _fraction, "in [0, 1]"),
+    Param("health_lost_ratio", 0.5, "... or below this fraction of the slow average ...", _fraction, "in [0, 1]"),
+    Param("health_lost_updates", 20, "... for this many sensor updates in a row",
+          lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
     # --- motion model
     Param("deterministic", False, "no motion noise: exact odometry composition", lambda v: isinstance(v, bool),
           "true or false"),
@@ -91,8 +107,8 @@ PARAMETERS = [
     Param("motion_a_rot", 0.2, "theta noise std per radian turned", _non_negative, ">= 0"),
     Param("motion_a_rot_to_trans", 0.02, "x noise std (m) per radian turned", _non_negative, ">= 0"),
     Param("motion_a_trans_to_rot", 0.1, "theta noise std (rad) per metre travelled", _non_negative, ">= 0"),
-    Param("motion_floor_xy", 0.002, "x/y noise std floor (m) per update while moving", _non_negative, ">= 0"),
-    Param("motion_floor_theta", 0.002, "theta noise std floor (rad) per update while moving", _non_negative, ">= 0"),
+    Param("motion_floor_xy", 0.006, "x/y noise std floor (m) per update while moving", _non_negative, ">= 0"),
+    Param("motion_floor_theta", 0.006, "theta noise std floor (rad) per update while moving", _non_negative, ">= 0"),
     # --- sensor model
     Param("num_beams_per_particle", 100, "beams of each scan used by the sensor model",
           lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
@@ -108,12 +124,14 @@ PARAMETERS = [
     Param("alpha_short", 0.07, "weight of the short-reading component", _non_negative, ">= 0"),
     Param("alpha_max", 0.07, "weight of the max-range component", _non_negative, ">= 0"),
     Param("alpha_rand", 0.12, "weight of the uniform random component", _non_negative, ">= 0"),
-    Param("sigma_hit", 8.0, "std of the hit component, in map cells", _positive, "> 0"),
+    Param("sigma_hit", 4.0, "std of the hit component, in map cells", _positive, "> 0"),
     Param("squash_factor", 2.2, "likelihoods are raised to 1/squash_factor", _positive, "> 0"),
     Param("table_width", 201, "sensor model table size; z_max = table_width - 1 cells",
           lambda v: isinstance(v, int) and 2 <= v <= 4096, "an integer in [2, 4096]"),
-    Param("ray_caster", "distance_transform", "lookup_table (fast, cached on disk), distance_transform or exact",
-          _one_of("lookup_table", "distance_transform", "exact"), "lookup_table, distance_transform or exact"),
+    Param("ray_caster", "lookup_table_exact", "lookup_table (fast, cached on disk), lookup_table_exact (the table "
+          "plus an exact finish per beam: ~4x slower, as accurate as exact), distance_transform or exact",
+          _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
+          "lookup_table, lookup_table_exact, distance_transform or exact"),
 ]
 
 BY_NAME = {p.name: p for p in PARAMETERS}

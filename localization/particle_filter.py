@@ -28,6 +28,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import LaserScan
+from std_msgs.msg import Float32
 from std_srvs.srv import Empty
 
 from . import messages
@@ -39,6 +40,7 @@ from .tf_broadcaster import TransformBroadcaster
 
 POSE_TOPIC = "/pf/pose/odom"
 PARTICLES_TOPIC = "/pf/particles"
+HEALTH_TOPIC = "/pf/health"  # std_msgs/Float32: scan-map agreement of the estimate (localization.health)
 MAP_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 ODOM_QOS = QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
@@ -150,6 +152,7 @@ class ParticleFilterNode(Node):
         scan_group, odom_group, control_group = (MutuallyExclusiveCallbackGroup() for _ in range(3))
         self.pose_pub = self.create_publisher(Odometry, POSE_TOPIC, 10)
         self.particles_pub = self.create_publisher(PoseArray, PARTICLES_TOPIC, 5)
+        self.health_pub = self.create_publisher(Float32, HEALTH_TOPIC, 10)
         self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
         self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS, callback_group=control_group)
         self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10,
@@ -162,7 +165,7 @@ class ParticleFilterNode(Node):
                             callback_group=control_group)
         self.get_logger().info(
             f"particle filter ready for input: {p.num_particles} particles, map {p.map_topic}, scans "
-            f"{p.scan_topic}, odometry {p.odom_topic}; publishing {POSE_TOPIC}, {PARTICLES_TOPIC}, TF {p.publish_tf}")
+            f"{p.scan_topic}, odometry {p.odom_topic}; publishing {POSE_TOPIC}, {PARTICLES_TOPIC}, {HEALTH_TOPIC}, TF {p.publish_tf}")
 
     # ------------------------------------------------------------------ inputs
     @_counted("map")
@@ -205,7 +208,8 @@ class ParticleFilterNode(Node):
     def on_reinitialize_global(self, request, response):
         stamp = self._last_data_stamp or self.get_clock().now().nanoseconds * 1e-9
         if self.localizer.initialize_global(stamp):
-            self.get_logger().info("global localization: particles spread over the free space of the map")
+            self.get_logger().info(f"global localization: {self.localizer.filter.num_particles} particles spread "
+                                   "over the free space of the map")
             self._publish_particles(stamp)
         return response
 
@@ -234,6 +238,9 @@ class ParticleFilterNode(Node):
             # re-stamped: odometry arriving meanwhile may re-stamp the Localizer's estimate object
             self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose, now)
             self._publish_particles(stamp)
+            health = messages.health_msg(self.localizer.health)
+            if health is not None:  # NaN while the cloud is still spread (global localization)
+                self.health_pub.publish(health)
 
     # ------------------------------------------------------------------ outputs
     def _publish_pose(self, est, odom_pose, est_with_odom=None) -> None:

@@ -137,3 +137,26 @@ def test_degenerate_filter_recovers_by_spreading_globally(caplog):
     assert "re-spreading" in caplog.text
     assert m.is_free(loc.filter.particles[:, :2]).mean() > 0.95
     assert_sane(loc)
+
+
+def test_scan_stamped_long_before_the_odometry_is_ignored(loc, caplog):
+    loc.on_odometry(10.0, 0.0, 0.0, 0.0)
+    loc.on_odometry(10.02, 1.0, 0.0, 0.0)
+    with caplog.at_level(logging.WARNING):
+        assert loc.on_scan(5.0, *good_scan()) is None  # 5 s in the past: stale or a clock jump
+    assert "before the latest odometry" in caplog.text
+    assert loc.estimate.stamp == 10.02
+    assert loc.on_scan(10.03, *good_scan()) is not None
+    # a bag loop: odometry jumps back (reference reset), then scans of the new loop are used again
+    assert loc.on_odometry(0.0, 1.0, 0.0, 0.0) is None
+    loc.on_odometry(0.02, 1.0, 0.0, 0.0)
+    assert loc.on_scan(0.03, *good_scan()) is not None
+
+
+def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):
+    loc.on_odometry(1.0, 0.0, 0.0, 0.0)
+    x0 = loc.estimate.pose[0]
+    loc.on_odometry(1.02, 1.0, 0.0, 0.0)
+    assert loc.on_odometry(-2.0, 1.0, 0.0, 0.0) is None  # one stamp 3 s back (corrupted, not a loop)
+    est = loc.on_odometry(1.06, 1.0, 0.0, 0.0)  # continues from 1.02: 0.04 s of motion
+    assert est is not None and abs(est.pose[0] - x0 - 0.06) < 0.02

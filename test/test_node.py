@@ -395,7 +395,9 @@ def test_real_bag_through_the_node_matches_the_core(runner, shared_dir):
     assert all(m.header.frame_id == "map" and all_finite_odometry(m) for m in poses)
     final = odom_pose(poses[-1])
     np.testing.assert_allclose(final, core.estimate.pose, atol=1e-9)
-    assert np.hypot(final[0] - 3.49, final[1] - 8.03) < 0.15  # consistent over seeds (see the PR notes)
+    # consistent over seeds 0-5 within 0.08 m; scan-map agreement ~0.91 there with real_params.yaml's
+    # motion noise (the earlier, 4x smaller noise ended ~0.3 m short, at (3.49, 8.03), agreement ~0.6)
+    assert np.hypot(final[0] - 3.57, final[1] - 8.35) < 0.15
 
 
 # ------------------------------------------------------------------------------------------ files
@@ -488,7 +490,12 @@ def test_console_script_with_the_parameter_file(context, drive):
         poses, particles, tfs = probe.snapshot()
         assert poses[-1].header.frame_id == "map" and poses[-1].child_frame_id == "base_link_pf"
         assert tfs[-1].child_frame_id == "base_link_pf"
-        assert np.hypot(*(odom_pose(poses[-1])[:2] - drive.truth(h.T0_NS + 500_000_000)[:2])) < 0.5
+        # the node may still be working through the stream: judge the last pose against the truth
+        # at the time it reflects (its stamp), not at the end of the stream
+        last = poses[-1]
+        t_ns = last.header.stamp.sec * 1_000_000_000 + last.header.stamp.nanosec
+        assert h.T0_NS < t_ns <= h.T0_NS + 500_000_000
+        assert np.hypot(*(odom_pose(last)[:2] - drive.truth(t_ns)[:2])) < 0.5
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)

@@ -1,0 +1,174 @@
+"""Filter health, global localization, kidnapped-robot recovery and the stationary car."""
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from helpers import corridor_map
+from localization import robustness_bench as RB
+from localization.datasets import trial_config
+from localization.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.localizer import Localizer
+from localization.mcl import MonteCarloLocalizer
+from localization.motion_model import MotionModel
+from localization.parameters import Parameters
+from localization.ray_casting import ExactRayCaster
+from localization.sensor_model import SensorModel
+from localization.simulator import load_map, simulate
+
+ANGLES = np.linspace(-2.356, 2.356, 1081)
+INC = ANGLES[1] - ANGLES[0]
+
+
+@pytest.fixture(scope="module")
+def stata():
+    return load_map("stata_basement")
+
+
+def params(**kw):
+    values = dict(ray_caster="lookup_table", random_seed=4)
+    values.update(kw)
+    return Parameters(values)
+
+
+# ------------------------------------------------------------------------------- HealthMonitor
+def test_monitor_is_lost_only_after_a_sustained_drop():
+    m = HealthMonitor(fast_alpha=0.2, slow_alpha=0.02, lost_floor=0.2, lost_ratio=0.5, lost_updates=10)
+    assert math.isnan(m.health)
+    rng = np.random.default_rng(0)
+    for _ in range(300):  # normal driving: noisy but good agreement, occasional bad scans
+        a = 0.15 if rng.random() < 0.05 else rng.uniform(0.75, 0.98)
+        assert not m.update(a)
+    assert 0.7 < m.health <= 1.0 and 0.7 < m.slow <= 1.0
+    assert not m.update(math.nan)  # a scan without valid beams says nothing
+    lost = []
+    while not (lost and lost[-1]) and len(lost) < 30:
+        lost.append(m.update(0.1))
+    assert 10 <= len(lost) <= 16  # the fast average falls within a few updates, then 10 low ones in a row
+    m.reset(keep_slow=True)  # re-initialised (recovery): the long-term average is kept ...
+    assert math.isnan(m.health) and m.low_count == 0 and m.slow > 0.65
+    lost = [m.update(0.22) for _ in range(10)]  # ... so a cloud re-converged to a wrong place is judged by it
+    assert lost[-1]
+    m.reset()
+    assert math.isnan(m.slow)
+    assert not any(m.update(0.22) for _ in range(30))  # above the floor (0.2), no history: not lost
+
+
+def test_monitor_from_parameters():
+    m = HealthMonitor.from_params(Parameters(health_lost_updates=7, health_lost_floor=0.2))
+    assert m.lost_updates == 7 and m.lost_floor == 0.2
+
+
+def test_cloud_spread():
+    assert cloud_spread(np.diag([4.0, 1.0, 0.1])) == pytest.approx(2.0)
+    assert cloud_spread(np.full((3, 3), np.nan)) == math.inf
+
+
+# ------------------------------------------------------------------------------- agreement
+def test_health_high_at_the_true_pose_and_low_when_wrong(stata):
+    true = np.array([-6.6, 20.5, -2.24])
+    laser = true + [0.275 * math.cos(true[2]), 0.275 * math.sin(true[2]), 0.0]
+    ranges = ExactRayCaster(stata, 10.0).cast(laser[None], ANGLES)[0]
+    scorer = AgreementScorer(stata, (0.275, 0.0, 0.0))
+    good = scorer.score(true, ranges, ANGLES, 0.02, 10.0)
+    assert good > 0.9
+    for off in ([1.0, 0.0, 0.0], [0.0, 0.0, 0.5], [8.0, -3.0, 1.0]):
+        assert scorer.score(true + off, ranges, ANGLES, 0.02, 10.0) < 0.5
+    assert math.isnan(scorer.score(true, np.full(1081, np.nan), ANGLES, 0.02, 10.0))
+
+
+# ------------------------------------------------------------------------------- resize
+def test_resize_keeps_the_distribution():
+    rng = np.random.default_rng(1)
+    f = MonteCarloLocalizer(MotionModel(rng=rng), SensorModel(), 20000, rng=rng)
+    f.initialize_gaussian([1.0, 2.0, 0.3], std=(0.5, 0.2, 0.1))
+    f.resize(2000)
+    assert f.particles.shape == (2000, 3) and f.num_particles == 2000 and np.isclose(f.weights.sum(), 1.0)
+    est = f.estimate()
+    assert np.allclose(est.pose, [1.0, 2.0, 0.3], atol=0.05)
+    assert np.allclose(np.sqrt(np.diag(est.covariance)), [0.5, 0.2, 0.1], rtol=0.15)
+    with pytest.raises(ValueError):
+        f.resize(0)
+
+
+# ------------------------------------------------------------------------------- simulated runs
+def test_normal_short_trial_keeps_health_high_without_recovery(stata):
+    rec = simulate(trial_config("trial3_noise0.6", duration=10.0), stata)
+    loc = Localizer(params(), logging.getLogger("test.normal"))
+    loc.set_map(stata)
+    run = RB.run_recording(rec, loc, init="pose")
+    assert run.recoveries == 0 and loc.recoveries == 0
+    assert run.health.size > 100 and np.median(run.health) > 0.85 and run.health.min() > 0.5
+    cmp = RB.ct_errors(rec, run)
+    assert cmp.ct_error[cmp.t > 2.0].max() < 0.3
+
+
+def test_kidnapped_robot_recovers(stata, caplog):
+    kidnap_at = 4.0
+    cfg = RB.loop_config(400, kidnap_at + 12.0, seed=11, kidnap_at=kidnap_at, kidnap_to=RB.loop_pose(1700))
+    rec = simulate(cfg, stata)
+    step = rec.trajectory.kidnapped_at_step
+    assert np.hypot(*(rec.trajectory.poses[step, :2] - rec.trajectory.poses[step - 1, :2])) > 10.0
+    loc = Localizer(params(), logging.getLogger("test.kidnap"))
+    loc.set_map(stata)
+    with caplog.at_level(logging.WARNING, logger="test.kidnap"):
+        run = RB.run_recording(rec, loc, init="pose")
+    assert run.recoveries >= 1 and "localization lost" in caplog.text
+    cmp = RB.ct_errors(rec, run)
+    assert cmp.ct_error[(cmp.t > 1.0) & (cmp.t < kidnap_at)].max() < 0.3  # tracking before
+    back = RB.settle_time(cmp, kidnap_at)
+    assert back is not None and back < 10.0, back
+    assert loc.filter.num_particles == loc.params.num_particles  # shrunk back after converging
+    assert run.health[-20:].min() > 0.7
+
+
+def test_global_localization_converges_and_shrinks(stata):
+    rec = simulate(RB.loop_config(1200, 8.0, seed=12), stata)
+    loc = Localizer(params(global_num_particles=20000), logging.getLogger("test.global"))
+    loc.set_map(stata)
+    loc.initialize_global(0.0)
+    assert loc.filter.num_particles == 20000 and loc.global_mode and math.isnan(loc.health)
+    run = RB.run_recording(rec, loc, init="none")
+    cmp = RB.ct_errors(rec, run)
+    t = RB.settle_time(cmp, 0.0)
+    assert t is not None and t < 8.0
+    assert not loc.global_mode and loc.filter.num_particles == loc.params.num_particles
+
+
+def test_recovery_can_be_switched_off(stata):
+    kidnap_at = 3.0
+    cfg = RB.loop_config(400, kidnap_at + 4.0, seed=11, kidnap_at=kidnap_at, kidnap_to=RB.loop_pose(1700))
+    rec = simulate(cfg, stata)
+    loc = Localizer(params(recovery=False), logging.getLogger("test.norecovery"))
+    loc.set_map(stata)
+    run = RB.run_recording(rec, loc, init="pose")
+    assert run.recoveries == 0  # lost, and it says so through health
+    before = run.health[(run.health_t > 1.0) & (run.health_t < kidnap_at)]
+    assert before.min() > 0.8 and run.health[-1] < 0.5 * before.mean()
+
+
+# ------------------------------------------------------------------------------- stationary car
+def test_stationary_car_does_not_drift_and_tightens_once():
+    m = corridor_map()
+    loc = Localizer(Parameters(num_particles=1000, random_seed=5, ray_caster="distance_transform"))
+    loc.set_map(m)
+    true = np.array([5.0, 1.5, 0.0])
+    laser = true + [0.275, 0.0, 0.0]
+    angles = np.linspace(-2.356, 2.356, 1081)
+    ranges = ExactRayCaster(m, 10.0).cast(laser[None], angles)[0]
+    loc.set_initial_pose(true + [0.1, 0.05, 0.05], np.diag([0.09, 0.09, 0.01]))
+    spread0 = cloud_spread(loc.estimate.covariance)
+    loc.on_odometry(0.0, 0.0, 0.0, 0.0)
+    first = loc.on_scan(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)
+    assert first is not None  # a sensor update runs right after /initialpose, standing still
+    spread1 = cloud_spread(first.covariance)
+    assert spread1 < spread0
+    mean1 = first.pose.copy()
+    particles1 = loc.filter.particles.copy()
+    for k in range(1, 400):  # 8 s standing: zero twist at 50 Hz, scans in between
+        loc.on_odometry(0.02 * k, 0.0, 0.0, 0.0)
+        assert loc.on_scan(0.02 * k + 0.01, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0) is None
+    assert np.array_equal(loc.filter.particles, particles1)  # no motion noise, no resampling jitter
+    est = loc.estimate
+    assert np.allclose(est.pose, mean1) and cloud_spread(est.covariance) <= spread1 + 1e-12
