@@ -40,9 +40,10 @@ class AgreementScorer:
     def __init__(self, occupancy_map: OccupancyMap, laser_offset=(0.0, 0.0, 0.0),
                  tolerance: float = AGREEMENT_TOLERANCE_M):
         self.map = occupancy_map
-        self.distance = occupancy_map.distance_to_obstacle()
         self.laser_offset = np.asarray(laser_offset, dtype=float).reshape(3)
         self.tolerance = float(tolerance)
+        # cell-centre distances, so "within tolerance" of a wall means within tolerance + half a cell
+        self.near = occupancy_map.near_obstacle(self.tolerance + 0.5 * occupancy_map.resolution)
         self._angles_key = None
         self._angles = None
 
@@ -63,9 +64,7 @@ class AgreementScorer:
             return math.nan
         cr = self.map.world_to_grid(pts)
         inside = self.map.in_bounds(cr)
-        d = np.full(len(pts), np.inf)
-        d[inside] = self.distance[cr[inside, 1], cr[inside, 0]]
-        return float(np.mean(d <= self.tolerance + 0.5 * self.map.resolution))
+        return float(np.count_nonzero(self.near[cr[inside, 1], cr[inside, 0]]) / len(pts))
 
 
 @dataclass

@@ -4,7 +4,8 @@ They import the message packages but not rclpy, and never emit a NaN or an infin
 
 * ``odometry_msg`` / ``transform_msg`` return ``None`` for a non-finite pose (the caller skips
   publishing); a non-finite covariance becomes "unknown" (``UNKNOWN_VARIANCE`` on the diagonal);
-* ``pose_array_msg`` drops non-finite particles and draws at most ``max_count`` of them.
+* ``pose_array_cdr`` (the particle cloud, serialized with numpy: fast) drops non-finite particles
+  and draws at most ``max_count`` of them.
 
 Stamps are ``builtin_interfaces/Time`` messages or float seconds (see ``time_msg``).
 """
@@ -16,7 +17,7 @@ from collections import OrderedDict
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Pose, PoseArray, Quaternion, TransformStamped
+from geometry_msgs.msg import Pose, Quaternion, TransformStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from std_msgs.msg import Float32
 
@@ -25,7 +26,8 @@ from .geometry import compose, inverse, yaw_to_quaternion
 from .occupancy_map import OccupancyMap
 
 UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
-COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+COV_INDEX = (0, 1, 5)
+INT32_MAX = 2**31 - 1  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
 
 
 def time_msg(stamp) -> Time:
@@ -36,6 +38,8 @@ def time_msg(stamp) -> Time:
     if not np.isfinite(t) or t < 0:
         t = 0.0
     sec, nanosec = sec_to_stamp_parts(t)
+    if sec > INT32_MAX:  # beyond builtin_interfaces/Time (int32 seconds): the latest stamp it can carry
+        sec, nanosec = INT32_MAX, 999_999_999
     return Time(sec=sec, nanosec=nanosec)
 
 
@@ -121,13 +125,30 @@ def select_particles(particles, max_count: int) -> np.ndarray:
     return p
 
 
-def pose_array_msg(particles, stamp, frame_id: str, max_count: int) -> PoseArray:
-    """geometry_msgs/PoseArray of (at most ``max_count``) particles."""
-    msg = PoseArray()
-    msg.header.stamp = time_msg(stamp)
-    msg.header.frame_id = frame_id
-    msg.poses = [pose_msg(p) for p in select_particles(particles, max_count)]
-    return msg
+def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
+    """The serialized (CDR, little endian) geometry_msgs/PoseArray of (at most ``max_count``)
+    particles, built with numpy: what the node publishes (``publisher.publish(bytes)``).
+
+    Building 500 ``Pose`` objects in Python takes ~35 ms, longer than a whole sensor update at
+    thousands of particles; this takes ~0.05 ms. Layout (offsets from the end of the 4-byte
+    encapsulation header): header.stamp int32 sec, uint32 nanosec; header.frame_id uint32
+    length (with the NUL) + bytes + NUL; uint32 pose count; padding to 8; then per pose 7
+    float64: position x, y, z, orientation x, y, z, w (the padding only when a pose follows).
+    """
+    p = select_particles(particles, max_count)
+    t = time_msg(stamp)
+    name = frame_id.encode() + b"\0"
+    body = bytearray(b"\x00\x01\x00\x00")  # CDR_LE encapsulation
+    body += np.array([t.sec], "<i4").tobytes() + np.array([t.nanosec, len(name)], "<u4").tobytes() + name
+    body += b"\0" * (-(len(body) - 4) % 4)
+    body += np.array([len(p)], "<u4").tobytes()
+    if len(p):
+        body += b"\0" * (-(len(body) - 4) % 8)
+    poses = np.zeros((len(p), 7), dtype="<f8")
+    poses[:, 0:2] = p[:, 0:2]
+    poses[:, 5] = np.sin(0.5 * p[:, 2])
+    poses[:, 6] = np.cos(0.5 * p[:, 2])
+    return bytes(body) + poses.tobytes()
 
 
 def transform_msg(pose, stamp, parent_frame: str, child_frame: str) -> TransformStamped | None:

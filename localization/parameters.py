@@ -128,7 +128,7 @@ PARAMETERS = [
     Param("squash_factor", 2.2, "likelihoods are raised to 1/squash_factor", _positive, "> 0"),
     Param("table_width", 201, "sensor model table size; z_max = table_width - 1 cells",
           lambda v: isinstance(v, int) and 2 <= v <= 4096, "an integer in [2, 4096]"),
-    Param("ray_caster", "lookup_table_exact", "lookup_table (fast, cached on disk), lookup_table_exact (the table "
+    Param("ray_caster", "lookup_table", "lookup_table (fast, cached on disk), lookup_table_exact (the table "
           "plus an exact finish per beam: ~4x slower, as accurate as exact), distance_transform or exact",
           _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
           "lookup_table, lookup_table_exact, distance_transform or exact"),

@@ -97,6 +97,9 @@ def cache_file_name(occupancy_map: OccupancyMap, max_range: float, theta_bins: i
 # ---------------------------------------------------------------------------------------------
 # compiled kernels (numba); ``LookupTableRayCaster.cast_numpy`` is their numpy counterpart
 # ---------------------------------------------------------------------------------------------
+SAFE_MARGIN = math.sqrt(2.0) + 1e-6  # cells: see _build_kernel
+BUILD_THREADS = 4  # at most: the table is built once per map, with every core the machine has
+
 # consts (float64 array) shared by the query kernels:
 C_INV_UNITS, C_MAX_CELLS, C_STEP, C_COS_STEP, C_SIN_STEP, C_REFINE = range(6)
 
@@ -146,13 +149,31 @@ if HAVE_NUMBA:
                 return t
 
     @njit(cache=True, nogil=True)
-    def _build_kernel(blocking, rows, cols, cos_k, sin_k, max_cells, units_per_cell, table):  # pragma: no cover
-        """table[i, k] = range from the centre of free cell (rows[i], cols[i]) along bin k."""
+    def _build_kernel(blocking, clearance, rows, cols, cos_k, sin_k, max_cells, units_per_cell,
+                      table):  # pragma: no cover
+        """table[i, k] = range from the centre of free cell (rows[i], cols[i]) along bin k.
+
+        Exact, but fast in open space: while the ray is far from every blocking cell it jumps
+        (sphere tracing) by a step no blocking cell can be within, then finishes with the exact
+        Amanatides–Woo march. ``clearance[iy, ix]``: a lower bound of the distance (cells) from
+        the centre of cell (ix, iy) to the nearest blocking cell centre; a point in that cell is
+        at least clearance − √2 from any point of any blocking cell (each point is within √2/2
+        of its cell's centre), so a step shorter than that never skips one. (Rays along the
+        exact diagonals pass lattice corners, where the march from a later start may stop at a
+        diagonal wall that the march from the centre slipped through: a tie either way.)"""
         for i in range(rows.size):
             ox = cols[i] + 1.5  # +1: padding, +0.5: the cell centre
             oy = rows[i] + 1.5
             for k in range(cos_k.size):
-                t = _march_from(blocking, ox, oy, cos_k[k], sin_k[k], 0.0, max_cells)
+                dx = cos_k[k]
+                dy = sin_k[k]
+                t = 0.0
+                while t < max_cells:
+                    safe = clearance[int(math.floor(oy + t * dy)), int(math.floor(ox + t * dx))] - SAFE_MARGIN
+                    if safe < 2.0:  # close to a wall: the exact march takes over
+                        break
+                    t += safe
+                t = _march_from(blocking, ox, oy, dx, dy, t, max_cells) if t < max_cells else max_cells
                 table[i, k] = np.uint16(min(t * units_per_cell + 0.5, 65535.0))
 
     @njit(cache=True, nogil=True)
@@ -441,8 +462,25 @@ class LookupTableRayCaster(RayCaster):
         th = self.bin_angles
         table = np.empty((rows.size, self.theta_bins), dtype=np.uint16)
         if self.use_numba:
-            _build_kernel(self.blocking, rows.astype(np.int64), cols.astype(np.int64), np.cos(th), np.sin(th),
-                          self.max_cells, self.units_per_cell, table)
+            from scipy.ndimage import distance_transform_cdt
+            # chessboard distance: a lower bound of the Euclidean one, so the jumps stay safe
+            clearance = np.minimum(distance_transform_cdt(~self.blocking, metric="chessboard"), 255).astype(np.uint8)
+            rows, cols, cos_k, sin_k = rows.astype(np.int64), cols.astype(np.int64), np.cos(th), np.sin(th)
+
+            def build(part: slice) -> None:  # the kernel releases the GIL: one thread per core
+                _build_kernel(self.blocking, clearance, rows[part], cols[part], cos_k, sin_k, self.max_cells,
+                              self.units_per_cell, table[part])
+
+            workers = max(1, min(BUILD_THREADS, os.cpu_count() or 1))
+            chunk = -(-rows.size // (4 * workers))  # a few chunks per thread: even finishing times
+            parts = [slice(a, a + chunk) for a in range(0, rows.size, chunk)]
+            if workers == 1:
+                for part in parts:
+                    build(part)
+            else:
+                from concurrent.futures import ThreadPoolExecutor
+                with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="range_table") as pool:
+                    list(pool.map(build, parts))
             return table
         chunk = max(1, 2_000_000 // self.theta_bins)
         for start in range(0, rows.size, chunk):
@@ -490,12 +528,12 @@ class LookupTableRayCaster(RayCaster):
         return caster
 
     def warm_up(self) -> None:
-        """Run the compiled kernels once (JIT compile, or load from numba's cache)."""
+        """Run the filter's compiled kernel once (JIT compile, or load from numba's cache);
+        ``cast`` (simulator, tools) compiles on its first call."""
         if not self.use_numba:
             return
         pose = np.zeros((1, 3))
         angles = np.zeros(1)
-        self.cast(pose, angles)
         self.log_likelihood_sums(pose, angles, np.zeros((1, 2)), 1.0, 1.0, (0.0, 0.0, 0.0))
 
     # ------------------------------------------------------------------ queries

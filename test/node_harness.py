@@ -16,7 +16,7 @@ import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -198,7 +198,7 @@ def wait_until(predicate, timeout=10.0, period=0.002) -> bool:
 
 # ---------------------------------------------------------------------------------- runner
 class Runner:
-    """A particle_filter node (in this process) + a probe, spun by a MultiThreadedExecutor in a
+    """A particle_filter node (in this process) + a probe, spun by a SingleThreadedExecutor (as in main()) in a
     background thread. ``step`` functions publish one input and wait until the node handled it."""
 
     def __init__(self, context, **overrides):
@@ -208,7 +208,7 @@ class Runner:
         self.node = ParticleFilterNode(context=context,
                                        parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
         self.probe = Probe(context)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=context)
+        self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.probe)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)

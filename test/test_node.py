@@ -1,6 +1,6 @@
 """End-to-end tests of the particle_filter node over DDS (loopback only, see conftest.py).
 
-The node runs in this process (own rclpy Context, MultiThreadedExecutor in a background thread)
+The node runs in this process (own rclpy Context, SingleThreadedExecutor in a background thread, as main() spins it)
 or as a subprocess; a probe node publishes a map, an initial pose and a recorded sequence of
 odometry and scans, in lock step (each message is published once the node handled the previous
 one), and records /pf/pose/odom, /pf/particles and /tf.

@@ -84,3 +84,9 @@ def test_unreadable_yaml_raises(tmp_path):
     (tmp_path / "bad.yaml").write_text("image: nothere.png\nresolution: 0.05\norigin: [0, 0, 0]\n")
     with pytest.raises(MapError, match="image"):
         OccupancyMap.from_yaml(tmp_path / "bad.yaml")
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.05, 0.125, 0.30])
+def test_near_obstacle_equals_the_distance_threshold(maps_dir, radius):
+    m = OccupancyMap.from_yaml(maps_dir / "stata_basement.yaml")
+    np.testing.assert_array_equal(m.near_obstacle(radius), m.distance_to_obstacle() <= radius + 1e-12)
