@@ -335,11 +335,11 @@ def format_report(r: dict) -> str:
 def format_latency(lat: dict) -> str:
     if "error" in lat:
         return f"latency: not measured ({lat['error']})"
-    return (f"latency (live node, {lat['particles']} particles, {lat['scan_hz']:g} Hz scans + {lat['odom_hz']:g} Hz "
-            f"odometry at real time for {lat['duration_s']:g} s): scan stamp -> published pose median "
-            f"{lat['latency_ms_median']:.1f} ms, p95 {lat['latency_ms_p95']:.1f} ms, max {lat['latency_ms_max']:.1f} ms; "
-            f"{lat['poses_from_scans']} of {lat['scans_sent']} scans produced a pose "
-            f"({lat['scans_skipped']} skipped/queued)")
+    return (f"latency (live node, {lat['particles']} particles, {lat['ray_caster']}, every scan updating, "
+            f"{lat['scan_hz']:g} Hz scans + {lat['odom_hz']:g} Hz odometry at real time for {lat['duration_s']:g} s): "
+            f"scan stamp -> published pose median {lat['latency_ms_median']:.1f} ms, p95 {lat['latency_ms_p95']:.1f} ms, "
+            f"max {lat['latency_ms_max']:.1f} ms; {lat['poses_from_scans']} of {lat['scans_sent']} scans produced a "
+            f"pose ({lat['scans_skipped']} replaced by a newer scan before their turn, or lost)")
 
 
 JSON_WORKLOAD_KEYS = ("particles", "beams", "raycast_ms_median", "sensor_update_ms_median", "sensor_update_ms_p95",

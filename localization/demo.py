@@ -3,7 +3,7 @@
 1. Records (or reuses from the cache) the three simulated Stata basement trials of the
    reference lab report (odometry noise 0, 0.3, 0.6; ``localization.datasets``), and with
    ``--loop`` the longer loop with biased odometry.
-2. Replays each with ``localization-replay``'s code (default parameters) and the three real
+2. Replays each with ``localization-replay``'s code (``config/params.yaml``, the simulator's parameters) and the three real
    RSS 2022 bags from their approximate start poses with ``config/real_params.yaml``.
 3. Prints a table like the report's (trial, noise level -> CT error; real bags -> scan-map
    agreement) and where the plots are.
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     out = args.out.resolve()
-    real_params = config_dir() / "real_params.yaml"
+    sim_params, real_params = config_dir() / "params.yaml", config_dir() / "real_params.yaml"
 
     sim_jobs, real_jobs, sweep_jobs = [], [], []
     if not args.skip_sim:
@@ -147,7 +147,7 @@ def main(argv=None) -> int:
             extra = {"duration": args.duration} if args.duration else {}
             bag = sim_bag(name, log=lambda s: print(s, file=sys.stderr), **extra)
             sim_jobs.append({"label": name, "bag": str(bag), "map": SIM_TRIALS[name].config.map,
-                             "overrides": overrides, "out": str(out / name)})
+                             "params_file": str(sim_params), "overrides": overrides, "out": str(out / name)})
     if not args.skip_real:
         for name, rb in REAL_BAGS.items():
             path = real_bag_path(name)
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
 
     n = overrides.get("num_particles", Parameters().num_particles)
     if sim_res:
-        print(f"\nSimulated Stata basement trials (stata_basement, default parameters, {n} particles); "
+        print(f"\nSimulated Stata basement trials (stata_basement, config/params.yaml, {n} particles); "
               f"CT error in metres, 'report' = the reference lab report's mean CT error")
         print(sim_table(sim_res))
     if real_res:

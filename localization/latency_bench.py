@@ -3,8 +3,9 @@
     python -m localization.latency_bench [--particles 4000] [--duration 20] [--json]
     python -m localization.bench --latency-only       (the same, from the benchmark)
 
-Starts the node in its own process (``config/real_params.yaml``, ``ray_caster`` lookup_table,
-``--particles``), publishes the ``basement_fixed`` map and an initial pose, then replays the
+Starts the node in its own process (``config/real_params.yaml``, ``--particles``, and
+``update_min_distance`` / ``update_min_angle`` 0 so that every scan updates the filter: the worst
+case), publishes the ``basement_fixed`` map and an initial pose, then replays the
 three real RSS 2022 racecar bags (1081-beam Hokuyo scans at ~40 Hz, VESC odometry at 50 Hz) into
 it **at real time**, cyclically until ``--duration`` seconds have been streamed, re-sending each
 bag's start pose before it. Every scan and odometry message is restamped with the wall clock
@@ -78,7 +79,7 @@ def _peak_rss_mb(pid: int) -> dict:
     return {"node_peak_rss_mb": out.get("VmHWM"), "node_rss_mb": out.get("VmRSS")}
 
 
-def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: str = "lookup_table",
+def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: str | None = None,
                     params_file=None, ready_timeout: float = 180.0, progress=None, extra_params=()) -> dict:
     """Run the node, stream the real bags into it at real time, return the latency statistics."""
     say = progress or (lambda msg: None)
@@ -107,9 +108,15 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
     params_file = Path(params_file) if params_file else config_dir() / "real_params.yaml"
 
     log = tempfile.NamedTemporaryFile(prefix="latency-node-", suffix=".log", delete=False)
+    # every scan updates the filter (no minimum travel between updates): the worst case
     cmd = [sys.executable, "-m", "localization.particle_filter", "--ros-args", "--params-file", str(params_file),
-           "-p", f"num_particles:={particles}", "-p", f"ray_caster:={ray_caster}", "-p", "random_seed:=0",
-           "-p", "odom_topic:=/vesc/odom", "-p", "scan_topic:=/scan"]
+           "-p", f"num_particles:={particles}", "-p", "random_seed:=0", "-p", "update_min_distance:=0.0",
+           "-p", "update_min_angle:=0.0", "-p", "odom_topic:=/vesc/odom", "-p", "scan_topic:=/scan"]
+    if ray_caster:
+        cmd += ["-p", f"ray_caster:={ray_caster}"]
+    else:
+        from .parameters import Parameters
+        ray_caster = Parameters.from_yaml(params_file).ray_caster
     for item in extra_params:  # NAME:=VALUE
         cmd += ["-p", item]
     say(f"starting the node ({particles} particles, {ray_caster}) ...")
@@ -272,7 +279,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m localization.latency_bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--particles", type=int, default=4000)
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of stream (default 20)")
-    ap.add_argument("--ray-caster", default="lookup_table",
+    ap.add_argument("--ray-caster", default=None, help="default: the parameter file's",
                     choices=["lookup_table", "lookup_table_exact", "distance_transform", "exact"])
     ap.add_argument("--params", type=Path, help="parameter file (default config/real_params.yaml)")
     ap.add_argument("-p", "--param", dest="extra", action="append", default=[], metavar="NAME:=VALUE",
