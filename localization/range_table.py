@@ -68,7 +68,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     numba = None
     HAVE_NUMBA = False
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: tables of the sphere-tracing build before the diagonal fix are not reused
 DEFAULT_THETA_BINS = 144
 TABLE_MAX_UNITS = 65535  # uint16
 
@@ -149,7 +149,7 @@ if HAVE_NUMBA:
                 return t
 
     @njit(cache=True, nogil=True)
-    def _build_kernel(blocking, clearance, rows, cols, cos_k, sin_k, max_cells, units_per_cell,
+    def _build_kernel(blocking, clearance, rows, cols, cos_k, sin_k, jump, max_cells, units_per_cell,
                       table):  # pragma: no cover
         """table[i, k] = range from the centre of free cell (rows[i], cols[i]) along bin k.
 
@@ -158,9 +158,11 @@ if HAVE_NUMBA:
         Amanatides–Woo march. ``clearance[iy, ix]``: a lower bound of the distance (cells) from
         the centre of cell (ix, iy) to the nearest blocking cell centre; a point in that cell is
         at least clearance − √2 from any point of any blocking cell (each point is within √2/2
-        of its cell's centre), so a step shorter than that never skips one. (Rays along the
-        exact diagonals pass lattice corners, where the march from a later start may stop at a
-        diagonal wall that the march from the centre slipped through: a tie either way.)"""
+        of its cell's centre), so a step shorter than that never skips one. Bins with ``jump[k]``
+        False (the exact diagonals) are marched from the centre: their rays pass through lattice
+        corners, where a march started elsewhere may break the tie between two diagonally
+        touching wall cells otherwise than ``ExactRayCaster`` and make the table inconsistent
+        between bins (measured: mean CT error of the simulated trials 0.03 m instead of 0.02)."""
         for i in range(rows.size):
             ox = cols[i] + 1.5  # +1: padding, +0.5: the cell centre
             oy = rows[i] + 1.5
@@ -168,7 +170,7 @@ if HAVE_NUMBA:
                 dx = cos_k[k]
                 dy = sin_k[k]
                 t = 0.0
-                while t < max_cells:
+                while t < max_cells and jump[k]:
                     safe = clearance[int(math.floor(oy + t * dy)), int(math.floor(ox + t * dx))] - SAFE_MARGIN
                     if safe < 2.0:  # close to a wall: the exact march takes over
                         break
@@ -466,9 +468,10 @@ class LookupTableRayCaster(RayCaster):
             # chessboard distance: a lower bound of the Euclidean one, so the jumps stay safe
             clearance = np.minimum(distance_transform_cdt(~self.blocking, metric="chessboard"), 255).astype(np.uint8)
             rows, cols, cos_k, sin_k = rows.astype(np.int64), cols.astype(np.int64), np.cos(th), np.sin(th)
+            jump = np.abs(np.abs(cos_k) - np.abs(sin_k)) > 1e-9  # not along an exact diagonal
 
             def build(part: slice) -> None:  # the kernel releases the GIL: one thread per core
-                _build_kernel(self.blocking, clearance, rows[part], cols[part], cos_k, sin_k, self.max_cells,
+                _build_kernel(self.blocking, clearance, rows[part], cols[part], cos_k, sin_k, jump, self.max_cells,
                               self.units_per_cell, table[part])
 
             workers = max(1, min(BUILD_THREADS, os.cpu_count() or 1))

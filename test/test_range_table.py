@@ -96,21 +96,9 @@ def test_table_is_the_exact_range_from_each_cell_centre(stata_map, stata_lut):
     exact = ExactRayCaster(stata_map, stata_lut.max_range)
     cells_exact = exact._cast_grid(cells[:, 1] + 1.5, cells[:, 0] + 1.5, np.cos(th), np.sin(th))
     stored = stata_lut.table[rows, bins] / stata_lut.units_per_cell
-    unit = 1.0 / stata_lut.units_per_cell
-    # rays along the exact diagonals pass through lattice corners: where two blocking cells touch
-    # diagonally it is a tie whether the ray slips between them; the build (which jumps through
-    # open space first) may stop at such a diagonal wall, never later than the exact caster
-    diagonal = bins % (k // 8) == 0
-    target = np.minimum(cells_exact, stata_lut.max_cells)
-    assert np.max(np.abs(stored - target)[~diagonal]) <= unit
-    assert np.all(stored[diagonal] <= target[diagonal] + unit)
-    padded = exact.blocking
-    for (row, col), t, b, hit_max in zip(cells[diagonal], stored[diagonal], th[diagonal],
-                                         stored[diagonal] >= stata_lut.max_cells - unit):
-        if not hit_max:  # just past the stored range the ray is in a blocking cell (or on its corner)
-            x, y = col + 1.5 + (t + 0.01) * np.cos(b), row + 1.5 + (t + 0.01) * np.sin(b)
-            near = padded[int(y - 0.02):int(y + 0.02) + 1, int(x - 0.02):int(x + 0.02) + 1]
-            assert near.any()
+    # exact to the table's resolution, the exact diagonals (rays through lattice corners) included
+    assert np.max(np.abs(stored - np.minimum(cells_exact, stata_lut.max_cells))) <= 1.0 / stata_lut.units_per_cell
+    assert np.count_nonzero(bins % (k // 8) == 0) > 0
 
 
 def test_exact_finish_matches_the_exact_caster(stata_map, stata_lut):
