@@ -114,10 +114,11 @@ PARAMETERS = [
           lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
     Param("scan_field_of_view", 4.71, "field of view (rad) assumed when a scan carries no angles (the course's "
           "convention)", lambda v: _positive(v) and v <= 2 * math.pi + 1e-6, "in (0, 2 pi]"),
-    Param("scan_theta_discretization", 360, "heading bins of the precomputed range table (lookup_table caster); "
-          "360 = 1 degree: 144 (2.5) smears wall edges seen far ahead at grazing incidence, enough to pull the "
-          "estimate ~0.3 m along a featureless corridor (robustness_bench long drive); ~220 MB for the Stata "
-          "basement (144: ~90 MB), built once and cached",
+    Param("scan_theta_discretization", 144, "heading bins of the precomputed range table (lookup_table "
+          "casters); 144 = 2.5 degrees, ~90 MB for the Stata basement. The table alone smears wall edges seen "
+          "far ahead at grazing incidence over the bins: in a long featureless corridor that can pull the "
+          "estimate 0.2-0.3 m along it for a second (robustness_bench long drive); 360 bins halve that for "
+          "2.5x the memory, the exact finish (lookup_table_exact) removes it for ~5x the update cost",
           lambda v: isinstance(v, int) and 8 <= v <= 2048, "an integer in [8, 2048]"),
     Param("lidar_scale_to_map_scale", 1.0, "scale from lidar metres to map metres", _positive, "> 0"),
     Param("laser_offset_x", 0.275, "laser position ahead of base_link (m); racecar: 0.275", _finite, "finite"),

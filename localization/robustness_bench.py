@@ -39,7 +39,7 @@ import numpy as np
 from . import metrics as M
 from .datasets import REPORT_TRIALS, _LOOP, trial_config
 from .localizer import Localizer
-from .parameters import Parameters
+from .parameters import Parameters, config_dir
 from .simulator import Recording, SimConfig, densify, load_map, simulate
 
 TARGET_M = 0.3
@@ -47,9 +47,10 @@ STATA = "stata_basement"
 
 
 def bench_params(**overrides) -> Parameters:
-    values = dict(ray_caster="lookup_table", random_seed=0)
+    """The simulator's shipped parameters (config/params.yaml), seeded, plus ``overrides``."""
+    values = dict(random_seed=0)
     values.update(overrides)
-    return Parameters(values)
+    return Parameters.from_yaml(config_dir() / "params.yaml", **values)
 
 
 # --------------------------------------------------------------------------------------------
