@@ -12,8 +12,9 @@ Prints, on the Stata basement map (or ``--map``), for (N particles, B beams) in
 
 then the lookup table's accuracy against the exact caster (|Δrange| in cells over uniformly
 random free poses and headings, 60 beams over 270°), the price and accuracy of the exact finish
-(``ray_caster: lookup_table_exact``, the default: the table plus a short exact march per beam;
-the workloads above are the plain ``lookup_table``), and init time / peak memory of a fresh
+(``ray_caster: lookup_table_exact``, the simulator's ``config/params.yaml``: the table plus a
+short exact march per beam; the workloads above are the plain ``lookup_table``, the default and
+the car's), and init time / peak memory of a fresh
 node-like process (``Localizer`` + map + lookup table + first odometry and scan): "cold" with an
 empty table cache *and* an empty numba cache (so table build and JIT compilation are counted),
 "cached" when both are warm. Particles are drawn uniformly over the free space before every
@@ -310,7 +311,7 @@ def format_report(r: dict) -> str:
                     f"{100 * a['within_1_cell']:.1f}% within 1 cell  "
                     f"{'OK' if a['median_abs_cells'] <= 1 and a['p95_abs_cells'] <= 3 else 'MISSED'}")
     f = r["exact_finish"]
-    verdicts.append("  with the exact finish (ray_caster lookup_table_exact, the default; refine = 1 cell): " + ", ".join(
+    verdicts.append("  with the exact finish (ray_caster lookup_table_exact, config/params.yaml for simulation; refine = 1 cell): " + ", ".join(
         f"{x['particles']} x {x['beams']} sensor update {x['sensor_update_ms_median']:.2f} ms" for x in f["workloads"])
         + f"; {100 * f['exact_fraction']:.1f}% of beams exact, p95 |dr| {f['p95_abs_cells']:.2f} cells")
     c, w = r["init_cold"], r["init_cached"]
