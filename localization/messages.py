@@ -33,7 +33,12 @@ INT32_MAX = 2**31 - 1  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
 def time_msg(stamp) -> Time:
     """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied)."""
     if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
-        return Time(sec=int(stamp.sec), nanosec=int(stamp.nanosec))
+        sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+        if 0 <= sec <= INT32_MAX and 0 <= nanosec <= 999_999_999:
+            return Time(sec=sec, nanosec=nanosec)
+        # rclpy's Python messages accept out-of-range values that cannot be serialized: clamp
+        sec, nanosec = (INT32_MAX, 999_999_999) if sec > INT32_MAX else (max(sec, 0), min(max(nanosec, 0), 999_999_999))
+        return Time(sec=sec, nanosec=nanosec)
     t = float(stamp)
     if not np.isfinite(t) or t < 0:
         t = 0.0

@@ -111,3 +111,19 @@ def test_occupancy_grid_msg_round_trips():
     back = OccupancyMap.from_msg(messages.occupancy_grid_msg(m))
     np.testing.assert_array_equal(back.data, data)
     assert back.resolution == 0.05 and np.allclose(back.origin, m.origin) and back.frame_id == "map"
+
+
+@pytest.mark.parametrize("sec, nanosec, expected", [
+    (3_491_151_709, 782_864_170, (2**31 - 1, 999_999_999)),  # beyond int32 (a fuzzed header stamp)
+    (-5, 10, (0, 10)),
+    (12, 5_000_000_000, (12, 999_999_999)),
+    (12, 34, (12, 34)),
+])
+def test_out_of_range_stamps_are_clamped_to_what_can_be_serialized(sec, nanosec, expected):
+    stamp = Time()
+    stamp.sec, stamp.nanosec = sec, nanosec  # rclpy's Python message takes it without a check
+    t = messages.time_msg(stamp)
+    assert (t.sec, t.nanosec) == expected
+    raw = messages.pose_array_cdr(np.zeros((2, 3)), stamp, "map", 10)
+    assert deserialize_message(raw, PoseArray).header.stamp == t
+    serialize_message(messages.odometry_msg([0.0, 0.0, 0.0], np.eye(3), stamp, "map", "b"))  # does not raise
