@@ -144,7 +144,8 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
             on_pose(msg)
 
     node.create_subscription(Odometry, "/pf/pose/odom", on_pose_or_cloud, 100)
-    node.create_subscription(PoseArray, "/pf/particles", on_pose_or_cloud, 5)
+    # raw: the cloud only signals readiness; decoding 500 poses per scan would load this process
+    node.create_subscription(PoseArray, "/pf/particles", on_pose_or_cloud, 5, raw=True)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     spinner = threading.Thread(target=executor.spin, daemon=True)

@@ -53,9 +53,10 @@ ODOM_QOS = QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=Rel
 # scan and odometry QoS can be changed with the standard parameters, e.g.
 # qos_overrides./scan.subscription.reliability:=reliable
 QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
-# sensor-data QoS, but only the newest scan is kept: a scan waiting behind a slow update is stale, and
-# it would be applied to particles that odometry has already moved past its time
-SCAN_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
+# sensor-data QoS (best effort, depth 5: the callback only hands the scan to the sensor-update
+# thread, whose one-slot mailbox keeps the newest, so a scan waiting behind a slow update never
+# queues). Depth 1 lost ~35 % of 40 Hz scans whenever the callback thread was briefly busy.
+SCAN_QOS = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.VOLATILE)
 TIME_JUMP = 1.0  # seconds: data stamps this far back (a bag replayed again) restart the TF stamps
 _TYPE_NAMES = {bool: "a boolean (true/false)", int: "an integer", float: "a float", str: "a string"}
@@ -275,6 +276,7 @@ class ParticleFilterNode(Node):
 
     def on_scan(self, msg: LaserScan) -> None:
         """Subscription callback: hand the scan over to the sensor-update thread."""
+        self.counts["scan_received"] += 1
         self.scan_worker.put(msg)
 
     @_counted("scan")
@@ -300,6 +302,8 @@ class ParticleFilterNode(Node):
         worker = getattr(self, "scan_worker", None)
         if worker is not None:
             worker.stop()  # no sensor update publishes through a destroyed node
+            self.get_logger().info(f"scans: {self.counts['scan_received']} received, {self.counts['scan']} "
+                                   f"processed, {worker.dropped} replaced by a newer one while waiting")
         return super().destroy_node()
 
     # ------------------------------------------------------------------ outputs
