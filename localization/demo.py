@@ -64,40 +64,34 @@ def _f(v, spec=".3f"):
     return "  n/a" if v is None else f"{v:{spec}}"
 
 
-def sim_table(results: list) -> str:
-    lines = [f"{'trial':<22} {'noise':>5} {'mean CT':>8} {'median':>7} {'p95':>6} {'max':>6} {'rms':>6} "
-             f"{'heading':>8} {'converge':>9} {'agree':>6} {'report':>7}"]
+def _table(header: str, results: list, width: int, row) -> str:
+    """The header, then ``row(label, metrics)`` per replay (or its error)."""
+    lines = [header]
     for r in results:
         name = r["job"]["label"]
-        if "error" in r:
-            lines.append(f"{name:<22} error: {r['error']}")
-            continue
-        m = r["metrics"]
-        ct = m["ct_error_m"]
-        conv = m["time_to_converge_s"]
-        ref = REFERENCE_CT.get(name)
-        head = m["heading_error_mean_abs_rad"]
-        lines.append(f"{name:<22} {SIM_TRIALS[name].odom_noise:>5.1f} {_f(ct['mean']):>8} {_f(ct['median']):>7} "
-                     f"{_f(ct['p95']):>6} {_f(ct['max']):>6} {_f(ct['rms']):>6} "
-                     f"{_f(None if head is None else head * 57.29578, '.2f'):>7}° "
-                     f"{'never' if conv is None else f'{conv:.3f} s':>9} "
-                     f"{_f(m['scan_map_agreement']['median']):>6} {_f(ref):>7}")
+        lines.append(f"{name:<{width}} error: {r['error']}" if "error" in r else row(name, r["metrics"]))
     return "\n".join(lines)
+
+
+def sim_table(results: list) -> str:
+    def row(name, m):
+        ct, conv, head = m["ct_error_m"], m["time_to_converge_s"], m["heading_error_mean_abs_rad"]
+        return (f"{name:<22} {SIM_TRIALS[name].odom_noise:>5.1f} {_f(ct['mean']):>8} {_f(ct['median']):>7} "
+                f"{_f(ct['p95']):>6} {_f(ct['max']):>6} {_f(ct['rms']):>6} "
+                f"{_f(None if head is None else head * 57.29578, '.2f'):>7}° "
+                f"{'never' if conv is None else f'{conv:.3f} s':>9} "
+                f"{_f(m['scan_map_agreement']['median']):>6} {_f(REFERENCE_CT.get(name)):>7}")
+    return _table(f"{'trial':<22} {'noise':>5} {'mean CT':>8} {'median':>7} {'p95':>6} {'max':>6} {'rms':>6} "
+                  f"{'heading':>8} {'converge':>9} {'agree':>6} {'report':>7}", results, 22, row)
 
 
 def real_table(results: list) -> str:
-    lines = [f"{'bag':<6} {'duration':>8} {'updates':>7} {'agreement median':>16} {'mean':>6} {'p05':>6} "
-             f"{'max jump':>8}"]
-    for r in results:
-        name = r["job"]["label"]
-        if "error" in r:
-            lines.append(f"{name:<6} error: {r['error']}")
-            continue
-        m = r["metrics"]
+    def row(name, m):
         ag = m["scan_map_agreement"]
-        lines.append(f"{name:<6} {m['bag_duration_s']:>7.1f}s {m['sensor_updates']:>7} {_f(ag['median']):>16} "
-                     f"{_f(ag['mean']):>6} {_f(ag['p05']):>6} {m['max_jump_m']:>7.2f}m")
-    return "\n".join(lines)
+        return (f"{name:<6} {m['bag_duration_s']:>7.1f}s {m['sensor_updates']:>7} {_f(ag['median']):>16} "
+                f"{_f(ag['mean']):>6} {_f(ag['p05']):>6} {m['max_jump_m']:>7.2f}m")
+    return _table(f"{'bag':<6} {'duration':>8} {'updates':>7} {'agreement median':>16} {'mean':>6} {'p05':>6} "
+                  f"{'max jump':>8}", results, 6, row)
 
 
 def build_parser() -> argparse.ArgumentParser:

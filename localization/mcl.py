@@ -89,10 +89,7 @@ class MonteCarloLocalizer:
         if n < 1:
             raise ValueError(f"num_particles must be >= 1, got {n}")
         if self.initialized and n != self.num_particles:
-            cumulative = np.cumsum(self.weights)
-            cumulative[-1] = 1.0
-            idx = np.searchsorted(cumulative, (self.rng.random() + np.arange(n)) / n, side="right")
-            self.particles = self.particles[np.minimum(idx, self.num_particles - 1)]
+            self.particles = self.particles[systematic_indices(self.weights, n, self.rng.random())]
             self.log_weights = np.full(n, -np.log(n))
         self.num_particles = n
 
@@ -139,11 +136,7 @@ class MonteCarloLocalizer:
             self.particles = out
             self.log_weights = np.full(n, -np.log(n))
             return
-        positions = (self.rng.random() + np.arange(n)) / n
-        cumulative = np.cumsum(weights)
-        cumulative[-1] = 1.0
-        idx = np.searchsorted(cumulative, positions, side="right")
-        self.particles = self.particles[np.minimum(idx, n - 1)]
+        self.particles = self.particles[systematic_indices(weights, n, self.rng.random())]
         if self.roughening.any():
             self.particles += self.rng.standard_normal((n, 3)) * self.roughening
             self.particles[:, 2] = wrap_angle(self.particles[:, 2])
@@ -168,6 +161,15 @@ class MonteCarloLocalizer:
 
 
 _NO_NOISE = np.zeros((0, 3))
+
+
+def systematic_indices(weights, n: int, u0: float) -> np.ndarray:
+    """Systematic (low-variance) resampling: the index drawn for each of ``n`` positions
+    (u0 + j) / n, u0 in [0, 1), from normalised ``weights`` (any length)."""
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    idx = np.searchsorted(cumulative, (u0 + np.arange(n)) / n, side="right")
+    return np.minimum(idx, len(cumulative) - 1)
 
 if njit is not None:
     @njit(cache=True, nogil=True)

@@ -26,24 +26,22 @@ from .geometry import compose, inverse, yaw_to_quaternion
 from .occupancy_map import OccupancyMap
 
 UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
-COV_INDEX = (0, 1, 5)
-INT32_MAX = 2**31 - 1  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+INT32_MAX = 2**31 - 1  # builtin_interfaces/Time.sec is int32
 
 
 def time_msg(stamp) -> Time:
-    """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied)."""
+    """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied), clamped
+    to what the type can carry (rclpy's Python messages accept values that cannot be serialized):
+    negative or non-finite times become 0, times beyond int32 seconds the latest stamp."""
     if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
-        sec, nanosec = int(stamp.sec), int(stamp.nanosec)
-        if 0 <= sec <= INT32_MAX and 0 <= nanosec <= 999_999_999:
-            return Time(sec=sec, nanosec=nanosec)
-        # rclpy's Python messages accept out-of-range values that cannot be serialized: clamp
-        sec, nanosec = (INT32_MAX, 999_999_999) if sec > INT32_MAX else (max(sec, 0), min(max(nanosec, 0), 999_999_999))
-        return Time(sec=sec, nanosec=nanosec)
-    t = float(stamp)
-    if not np.isfinite(t) or t < 0:
-        t = 0.0
-    sec, nanosec = sec_to_stamp_parts(t)
-    if sec > INT32_MAX:  # beyond builtin_interfaces/Time (int32 seconds): the latest stamp it can carry
+        sec, nanosec = int(stamp.sec), min(max(int(stamp.nanosec), 0), 999_999_999)
+    else:
+        t = float(stamp)
+        sec, nanosec = sec_to_stamp_parts(t if np.isfinite(t) and t >= 0 else 0.0)
+    if sec < 0:
+        sec = 0
+    elif sec > INT32_MAX:
         sec, nanosec = INT32_MAX, 999_999_999
     return Time(sec=sec, nanosec=nanosec)
 

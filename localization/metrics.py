@@ -15,9 +15,9 @@ With ground truth:
 
 Without ground truth, the scan–map agreement: project every valid beam of a scan from the
 estimated laser pose; the agreement is the fraction of endpoints lying within ``tolerance``
-(0.10 m) of an occupied map cell. Distances come from ``OccupancyMap.distance_to_obstacle()``,
-which measures between cell *centres*; the distance from a point to the nearest occupied cell
-is taken as that minus half a cell, i.e. an endpoint agrees when its cell's centre lies within
+(0.10 m) of an occupied map cell. Distances are those of ``OccupancyMap.distance_to_obstacle()``
+(looked up as the mask ``OccupancyMap.near_obstacle()``), between cell *centres*; the distance
+from a point to the nearest occupied cell is taken as that minus half a cell, i.e. an endpoint agrees when its cell's centre lies within
 ``tolerance + resolution / 2`` of an occupied cell's centre (without that half cell, a wall
 face 2 cells away — 0.1008 m on the 0.0504 m Stata maps — would never count). A well-localized
 car in a static mapped corridor scores close to 1; a wrong pose scores low. Beams at or beyond

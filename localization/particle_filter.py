@@ -5,8 +5,8 @@ message builders -> ROS messages). See docs/node.md for topics, frames and param
     python -m localization.particle_filter --ros-args -p num_particles:=500
 
 Threading: a SingleThreadedExecutor runs every subscription callback (each takes well under a
-millisecond or two); the scan callback only converts the message and leaves it in a one-slot
-mailbox for the sensor-update thread (``LatestScanWorker``), which runs the sensor update (the
+millisecond or two); the scan callback only leaves the message in a one-slot mailbox for the
+sensor-update thread (``LatestScanWorker``), which runs the sensor update (the
 compiled kernels release the GIL) and publishes its outputs. So a slow sensor update never delays
 the pose published on odometry (the Localizer queues odometry that arrives during a sensor
 update), and a scan that waited behind a slow update is replaced by the newer one instead of
@@ -26,7 +26,6 @@ import rclpy
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -197,21 +196,18 @@ class ParticleFilterNode(Node):
         self._last_tf_stamp = -np.inf
         self._last_data_stamp = None
 
-        self.scan_worker = LatestScanWorker(self.process_scan, self.get_logger().error)
-        scan_group, odom_group, control_group = (MutuallyExclusiveCallbackGroup() for _ in range(3))
         self.pose_pub = self.create_publisher(Odometry, POSE_TOPIC, 10)
         self.particles_pub = self.create_publisher(PoseArray, PARTICLES_TOPIC, 5)
         self.health_pub = self.create_publisher(Float32, HEALTH_TOPIC, 10)
         self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
-        self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS, callback_group=control_group)
-        self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10,
-                                 callback_group=control_group)
+        self.scan_worker = LatestScanWorker(self.process_scan, self.get_logger().error)
+        self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10)
         self.create_subscription(LaserScan, p.scan_topic, self.on_scan, SCAN_QOS,
-                                 callback_group=scan_group, qos_overriding_options=QOS_OVERRIDES)
-        self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS, callback_group=odom_group,
                                  qos_overriding_options=QOS_OVERRIDES)
-        self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global,
-                            callback_group=control_group)
+        self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS,
+                                 qos_overriding_options=QOS_OVERRIDES)
+        self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global)
         self.get_logger().info(
             f"particle filter ready for input: {p.num_particles} particles, map {p.map_topic}, scans "
             f"{p.scan_topic}, odometry {p.odom_topic}; publishing {POSE_TOPIC}, {PARTICLES_TOPIC}, {HEALTH_TOPIC}, TF {p.publish_tf}")

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import math
 import sys
@@ -261,37 +262,33 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
                     initialised = True
                     continue
                 if topic == odom_topic:
-                    tw = twist_from_odometry(m.msg)
-                    if not initialised and not use_bag_initialpose:
-                        initial_pose, init_t = _initialise(localizer, opts, tw.stamp), tw.stamp
-                        initialised = True
-                    counts["odometry"] += 1
-                    t0 = time.perf_counter()
-                    est = localizer.on_odometry(tw.stamp, tw.vx, tw.vy, tw.wz)
-                    dt = time.perf_counter() - t0
-                    filter_time += dt
-                    if est is not None:
-                        motion_times.append(dt)
-                        counts["motion_updates"] += 1
-                    publish(est)
+                    data = twist_from_odometry(m.msg)
+                    update = functools.partial(localizer.on_odometry, data.stamp, data.vx, data.vy, data.wz)
+                    kind, times, updated = "odometry", motion_times, "motion_updates"
                 elif topic == scan_topic:
-                    sc = scan_from_msg(m.msg)
-                    if not initialised and not use_bag_initialpose:
-                        initial_pose, init_t = _initialise(localizer, opts, sc.stamp), sc.stamp
-                        initialised = True
-                    counts["scans"] += 1
-                    t0 = time.perf_counter()
-                    est = localizer.on_scan(sc.stamp, sc.ranges, sc.angle_min, sc.angle_max, sc.angle_increment,
-                                            sc.range_min, sc.range_max)
-                    dt = time.perf_counter() - t0
-                    filter_time += dt
-                    if est is not None:
-                        sensor_times.append(dt)
-                        counts["sensor_updates"] += 1
-                        if math.isfinite(localizer.health):
-                            health_t.append(sc.stamp)
-                            health.append(localizer.health)
-                    publish(est)
+                    data = scan_from_msg(m.msg)
+                    update = functools.partial(localizer.on_scan, data.stamp, data.ranges, data.angle_min,
+                                               data.angle_max, data.angle_increment, data.range_min, data.range_max)
+                    kind, times, updated = "scans", sensor_times, "sensor_updates"
+                else:
+                    continue
+                if not initialised and not use_bag_initialpose:
+                    initial_pose, init_t = _initialise(localizer, opts, data.stamp), data.stamp
+                    initialised = True
+                counts[kind] += 1
+                t0 = time.perf_counter()
+                est = update()
+                dt = time.perf_counter() - t0
+                filter_time += dt
+                if est is not None:
+                    times.append(dt)
+                    counts[updated] += 1
+                publish(est)
+                if topic == scan_topic:
+                    sc = data
+                    if est is not None and math.isfinite(localizer.health):
+                        health_t.append(sc.stamp)
+                        health.append(localizer.health)
                     current = localizer.estimate
                     if current is not None:
                         key = (sc.ranges.size, sc.angle_min, sc.angle_max, sc.angle_increment)
