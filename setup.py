@@ -14,6 +14,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/maps", glob("maps/*.yaml") + glob("maps/*.png") + ["maps/README.md"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -24,10 +25,10 @@ setup(
     entry_points={
         "console_scripts": [
             "particle_filter = localization.particle_filter:main",
-            "localization-play = localization.play:main",
-            "localization-simulate = localization.simulator:main",
-            "localization-replay = localization.replay:main",
-            "localization-demo = localization.demo:main",
+            "localization-play = localization.tools.play:main",
+            "localization-simulate = localization.tools.simulate:main",
+            "localization-replay = localization.tools.replay:main",
+            "localization-demo = localization.tools.demo:main",
         ],
     },
 )

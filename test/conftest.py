@@ -14,7 +14,8 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-SHARED = Path(os.environ.get("LOCALIZATION_SHARED_DIR", Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
+SHARED = Path(os.environ.get("LOCALIZATION_SHARED_DIR",
+                            Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
 
 
 @pytest.fixture(scope="session")

@@ -5,7 +5,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from localization.occupancy_map import OccupancyMap
+from localization.core.occupancy_map import OccupancyMap
 
 
 def corridor_map(width_cells=200, height_cells=60, wall_rows=(10, 50), resolution=0.05, origin=(0.0, 0.0, 0.0)):

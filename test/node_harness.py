@@ -24,11 +24,11 @@ from sensor_msgs.msg import LaserScan
 from std_srvs.srv import Empty
 from tf2_msgs.msg import TFMessage
 
-from localization.conversions import stamp_to_sec
-from localization.geometry import compose, yaw_to_quaternion
-from localization.messages import occupancy_grid_msg  # noqa: F401 (re-exported for the tests)
-from localization.occupancy_map import OccupancyMap, resolve_map_path  # noqa: F401
-from localization.particle_filter import ParticleFilterNode
+from localization.core.geometry import compose, yaw_to_quaternion
+from localization.core.occupancy_map import OccupancyMap, load_map  # noqa: F401
+from localization.ros.conversions import stamp_to_sec
+from localization.ros.messages import occupancy_grid_msg  # noqa: F401 (re-exported for the tests)
+from localization.ros.node import ParticleFilterNode
 
 T0_NS = 1_700_000_000_123_456_789  # stamps carry nanoseconds: outputs must keep them exactly
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -90,10 +90,6 @@ def initialpose_msg(pose, t_ns: int = T0_NS, frame_id: str = "map", std=(0.3, 0.
 
 
 @functools.lru_cache(maxsize=4)
-def load_map(name: str) -> OccupancyMap:
-    return OccupancyMap.from_yaml(resolve_map_path(name))
-
-
 @functools.lru_cache(maxsize=4)
 def map_msg(name: str) -> OccupancyGrid:
     return occupancy_grid_msg(load_map(name))
@@ -124,7 +120,7 @@ class Drive:
 @functools.lru_cache(maxsize=2)
 def synthetic_drive(start=(-6.0, 20.0, -2.24), speed=2.0, duration=3.0, odom_scale=0.95, noise=0.02,
                     seed=0) -> Drive:
-    from localization.ray_casting import ExactRayCaster
+    from localization.core.raycast.exact import ExactRayCaster
 
     drive = Drive(np.array(start, dtype=float), speed, duration)
     rng = np.random.default_rng(seed)

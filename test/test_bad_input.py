@@ -3,13 +3,15 @@ import logging
 
 import numpy as np
 import pytest
+from helpers import corridor_map
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from helpers import corridor_map
-from localization.localizer import Localizer
-from localization.occupancy_map import MapError, OccupancyMap
-from localization.parameters import Parameters
+from localization.core.localizer import Localizer
+from localization.core.occupancy_map import MapError, OccupancyMap
+from localization.core.odometry import TwistData
+from localization.core.parameters import Parameters
+from localization.core.scan import ScanData
 
 FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
@@ -39,37 +41,37 @@ def assert_sane(loc):
 def test_broken_scans(loc, ranges, caplog):
     _, a0, a1, inc, rmin, rmax = good_scan(max(len(ranges), 2))
     with caplog.at_level(logging.INFO):
-        loc.on_odometry(0.0, 0.0, 0.0, 0.0)
-        loc.on_odometry(0.02, 1.0, 0.0, 0.0)
-        loc.on_scan(0.02, ranges, a0, a1, inc, rmin, rmax)
+        loc.on_odometry(TwistData(0.0, 0.0, 0.0, 0.0))
+        loc.on_odometry(TwistData(0.02, 1.0, 0.0, 0.0))
+        loc.on_scan(ScanData(0.02, ranges, a0, a1, inc, rmin, rmax))
     assert_sane(loc)
 
 
 def test_all_invalid_and_empty_scans_say_so(loc, caplog):
     with caplog.at_level(logging.WARNING):
-        loc.on_scan(0.0, np.full(50, np.nan), -2.0, 2.0, 0.08, 0.02, 10.0)
-        loc.on_scan(0.0, np.array([]), -2.0, 2.0, 0.08, 0.02, 10.0)
+        loc.on_scan(ScanData(0.0, np.full(50, np.nan), -2.0, 2.0, 0.08, 0.02, 10.0))
+        loc.on_scan(ScanData(0.0, np.array([]), -2.0, 2.0, 0.08, 0.02, 10.0))
     assert "no valid range" in caplog.text and "no ranges" in caplog.text
 
 
 @pytest.mark.parametrize("angles", [(2.0, -2.0, -0.02), (-2.0, 2.0, 0.0), (np.nan, 2.0, 0.02), (-2.0, 2.0, np.inf)])
 def test_reversed_or_broken_angles(loc, angles):
     ranges = np.full(201, 1.0)
-    loc.on_scan(0.0, ranges, *angles, 0.02, 10.0)
+    loc.on_scan(ScanData(0.0, ranges, *angles, 0.02, 10.0))
     assert_sane(loc)
 
 
 def test_odometry_nan_absurd_and_backwards(loc, caplog):
-    loc.on_odometry(1.0, 0.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
     before = loc.filter.particles.copy()
     with caplog.at_level(logging.WARNING):
-        assert loc.on_odometry(1.02, np.nan, 0.0, 0.0) is None
-        assert loc.on_odometry(1.04, 500.0, 0.0, 0.0) is None
-        assert loc.on_odometry(0.5, 1.0, 0.0, 0.0) is None  # backwards (bag loop)
-        assert loc.on_odometry(30.0, 1.0, 0.0, 0.0) is None  # gap of many seconds
+        assert loc.on_odometry(TwistData(1.02, np.nan, 0.0, 0.0)) is None
+        assert loc.on_odometry(TwistData(1.04, 500.0, 0.0, 0.0)) is None
+        assert loc.on_odometry(TwistData(0.5, 1.0, 0.0, 0.0)) is None  # backwards (bag loop)
+        assert loc.on_odometry(TwistData(30.0, 1.0, 0.0, 0.0)) is None  # gap of many seconds
     assert np.array_equal(loc.filter.particles, before)
     assert "non-finite" in caplog.text and "absurd" in caplog.text and "jumped" in caplog.text
-    assert loc.on_odometry(30.02, 1.0, 0.0, 0.0) is not None
+    assert loc.on_odometry(TwistData(30.02, 1.0, 0.0, 0.0)) is not None
     assert_sane(loc)
 
 
@@ -97,7 +99,7 @@ def test_maps_without_free_space_are_rejected_and_old_map_kept(loc):
 
 def test_new_map_of_another_size_while_running(loc):
     loc.set_map(corridor_map(width_cells=400, height_cells=100, wall_rows=(20, 80)))
-    loc.on_scan(0.0, *good_scan())
+    loc.on_scan(ScanData(0.0, *good_scan()))
     assert_sane(loc)
     # a map where no particle is valid any more: the filter waits for a new pose instead of guessing
     loc.set_map(corridor_map(origin=(100.0, 100.0, 0.0)))
@@ -107,8 +109,8 @@ def test_new_map_of_another_size_while_running(loc):
 def test_before_any_map(caplog):
     loc = Localizer(Parameters(num_particles=50))
     with caplog.at_level(logging.INFO):
-        assert loc.on_odometry(0.0, 1.0, 0.0, 0.0) is None
-        assert loc.on_scan(0.0, *good_scan()) is None
+        assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
+        assert loc.on_scan(ScanData(0.0, *good_scan())) is None
     assert "no map" in caplog.text
 
 
@@ -116,10 +118,10 @@ def test_before_any_map(caplog):
 @given(stamp=FLOATS, vx=FLOATS, vy=FLOATS, wz=FLOATS, ranges=st.lists(FLOATS, max_size=60),
        amin=FLOATS, amax=FLOATS, inc=FLOATS, rmin=FLOATS, rmax=FLOATS)
 def test_fuzz_callbacks_never_crash_or_emit_nan(loc, stamp, vx, vy, wz, ranges, amin, amax, inc, rmin, rmax):
-    out = loc.on_odometry(stamp, vx, vy, wz)
+    out = loc.on_odometry(TwistData(stamp, vx, vy, wz))
     if out is not None:
         assert np.all(np.isfinite(out.pose))
-    out = loc.on_scan(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax)
+    out = loc.on_scan(ScanData(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax))
     if out is not None:
         assert np.all(np.isfinite(out.pose)) and np.all(np.isfinite(out.covariance))
     assert np.all(np.isfinite(loc.filter.particles))
@@ -133,30 +135,30 @@ def test_degenerate_filter_recovers_by_spreading_globally(caplog):
     loc.filter.particles[:, :2] = [-50.0, -50.0]  # the car was carried off: every particle impossible
     with caplog.at_level(logging.WARNING):
         for k in range(3):
-            assert loc.on_scan(float(k), *good_scan()) is None
+            assert loc.on_scan(ScanData(float(k), *good_scan())) is None
     assert "re-spreading" in caplog.text
     assert m.is_free(loc.filter.particles[:, :2]).mean() > 0.95
     assert_sane(loc)
 
 
 def test_scan_stamped_long_before_the_odometry_is_ignored(loc, caplog):
-    loc.on_odometry(10.0, 0.0, 0.0, 0.0)
-    loc.on_odometry(10.02, 1.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(10.0, 0.0, 0.0, 0.0))
+    loc.on_odometry(TwistData(10.02, 1.0, 0.0, 0.0))
     with caplog.at_level(logging.WARNING):
-        assert loc.on_scan(5.0, *good_scan()) is None  # 5 s in the past: stale or a clock jump
+        assert loc.on_scan(ScanData(5.0, *good_scan())) is None  # 5 s in the past: stale or a clock jump
     assert "before the latest odometry" in caplog.text
     assert loc.estimate.stamp == 10.02
-    assert loc.on_scan(10.03, *good_scan()) is not None
+    assert loc.on_scan(ScanData(10.03, *good_scan())) is not None
     # a bag loop: odometry jumps back (reference reset), then scans of the new loop are used again
-    assert loc.on_odometry(0.0, 1.0, 0.0, 0.0) is None
-    loc.on_odometry(0.02, 1.0, 0.0, 0.0)
-    assert loc.on_scan(0.03, *good_scan()) is not None
+    assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
+    loc.on_odometry(TwistData(0.02, 1.0, 0.0, 0.0))
+    assert loc.on_scan(ScanData(0.03, *good_scan())) is not None
 
 
 def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):
-    loc.on_odometry(1.0, 0.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
     x0 = loc.estimate.pose[0]
-    loc.on_odometry(1.02, 1.0, 0.0, 0.0)
-    assert loc.on_odometry(-2.0, 1.0, 0.0, 0.0) is None  # one stamp 3 s back (corrupted, not a loop)
-    est = loc.on_odometry(1.06, 1.0, 0.0, 0.0)  # continues from 1.02: 0.04 s of motion
+    loc.on_odometry(TwistData(1.02, 1.0, 0.0, 0.0))
+    assert loc.on_odometry(TwistData(-2.0, 1.0, 0.0, 0.0)) is None  # one stamp 3 s back (corrupted, not a loop)
+    est = loc.on_odometry(TwistData(1.06, 1.0, 0.0, 0.0))  # continues from 1.02: 0.04 s of motion
     assert est is not None and abs(est.pose[0] - x0 - 0.06) < 0.02

@@ -6,7 +6,7 @@ import pytest
 import yaml
 from rosbags.rosbag2 import Writer
 
-from localization.bag_io import (
+from localization.bags import (
     BagError,
     BagWriter,
     bag_info,
@@ -20,8 +20,8 @@ from localization.bag_io import (
     read_messages,
     stamp_to_ns,
     topics,
-    yaw_from_quaternion,
 )
+from localization.core.geometry import yaw_of
 
 T0 = 1_700_000_000_000_000_000  # bag start, ns
 N_SCANS = 8
@@ -117,7 +117,7 @@ def test_round_trip(sample_bag):
     assert (last.header.frame_id, last.child_frame_id) == ("odom", "base_link")
     assert last.pose.pose.position.x == pytest.approx(0.1 * (N_ODOM - 1))
     assert last.pose.pose.position.y == pytest.approx(-0.05 * (N_ODOM - 1))
-    assert yaw_from_quaternion(last.pose.pose.orientation) == pytest.approx(0.02 * (N_ODOM - 1))
+    assert yaw_of(last.pose.pose.orientation) == pytest.approx(0.02 * (N_ODOM - 1))
     assert last.twist.twist.linear.x == 1.5 and last.twist.twist.angular.z == pytest.approx(0.2)
     assert last.header.stamp.sec == odoms[-1].t_ns // 10**9
     assert last.header.stamp.nanosec == odoms[-1].t_ns % 10**9

@@ -2,13 +2,16 @@
 import numpy as np
 import pytest
 
-from localization.geometry import compose
-from localization.localizer import Localizer, twist_to_delta
-from localization.mcl import MonteCarloLocalizer
-from localization.motion_model import MotionModel
-from localization.occupancy_map import OccupancyMap
-from localization.parameters import ParameterError, Parameters, config_dir
-from localization.ray_casting import ExactRayCaster
+from localization.core.filter.mcl import MonteCarloLocalizer
+from localization.core.geometry import compose, integrate_twist
+from localization.core.localizer import Localizer
+from localization.core.motion import MotionModel
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.odometry import TwistData
+from localization.core.parameters import ParameterError, Parameters
+from localization.core.paths import config_dir
+from localization.core.raycast.exact import ExactRayCaster
+from localization.core.scan import ScanData
 from localization.sensor_model import SensorModel
 
 
@@ -62,11 +65,11 @@ def test_all_zero_likelihood_is_reported_and_weights_kept(stata):
 
 
 def test_twist_to_delta_arc():
-    d = twist_to_delta(2.0, 0.0, 0.0, 0.5)
+    d = integrate_twist(2.0, 0.0, 0.0, 0.5)
     assert np.allclose(d, [1.0, 0.0, 0.0])
-    d = twist_to_delta(1.0, 0.0, np.pi, 1.0)  # half circle of radius 1/pi
+    d = integrate_twist(1.0, 0.0, np.pi, 1.0)  # half circle of radius 1/pi
     assert np.allclose(d, [0.0, 2.0 / np.pi, np.pi], atol=1e-12)
-    small = twist_to_delta(1.0, 0.0, 1e-9, 1.0)
+    small = integrate_twist(1.0, 0.0, 1e-9, 1.0)
     assert np.allclose(small, [1.0, 0.0, 1e-9])
 
 
@@ -77,15 +80,16 @@ def drive(loc, m, truth, seconds, speed=2.0, rng=None, odom_noise=0.0):
     rng = rng or np.random.default_rng(0)
     errors = []
     t, next_scan = 0.0, 0.0
-    loc.on_odometry(t, 0.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(t, 0.0, 0.0, 0.0))
     while t < seconds:
         t = round(t + 0.02, 6)
         truth = compose(truth, [speed * 0.02, 0.0, 0.0])
-        loc.on_odometry(t, speed + rng.normal(0, odom_noise), rng.normal(0, odom_noise), rng.normal(0, odom_noise))
+        noise = rng.normal(0, odom_noise, 3)
+        loc.on_odometry(TwistData(t, speed + noise[0], noise[1], noise[2]))
         if t >= next_scan:
             next_scan += 0.025
             r = caster.cast(compose(truth, [0.275, 0, 0])[None], angles)[0] + rng.normal(0, 0.01, angles.size)
-            est = loc.on_scan(t, r, -2.356, 2.356, angles[1] - angles[0], 0.02, 10.0)
+            est = loc.on_scan(ScanData(t, r, -2.356, 2.356, angles[1] - angles[0], 0.02, 10.0))
             if est is not None:
                 errors.append(np.hypot(*(est.pose[:2] - truth[:2])))
     return truth, np.array(errors)
@@ -103,10 +107,10 @@ def test_localizer_converges_on_a_corridor_drive(stata):
 
 def test_localizer_waits_for_map_and_pose_and_is_seeded(stata):
     loc = Localizer(Parameters(num_particles=200, random_seed=5))
-    assert loc.on_odometry(0.0, 1.0, 0.0, 0.0) is None
-    assert loc.on_scan(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0) is None
+    assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
+    assert loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)) is None
     loc.set_map(stata)
-    assert not loc.ready and loc.on_scan(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0) is None
+    assert not loc.ready and loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)) is None
     runs = []
     for _ in range(2):
         loc = Localizer(Parameters(num_particles=200, random_seed=5))
@@ -121,11 +125,11 @@ def test_odometry_stamp_going_backwards_does_not_move_particles(stata):
     loc = Localizer(Parameters(num_particles=100, random_seed=6))
     loc.set_map(stata)
     loc.set_initial_pose([-6.0, 20.0, -2.24])
-    loc.on_odometry(10.0, 0.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(10.0, 0.0, 0.0, 0.0))
     before = loc.filter.particles.copy()
-    assert loc.on_odometry(9.0, 3.0, 0.0, 0.0) is None  # backwards: reference reset
+    assert loc.on_odometry(TwistData(9.0, 3.0, 0.0, 0.0)) is None  # backwards: reference reset
     assert np.array_equal(loc.filter.particles, before)
-    loc.on_odometry(9.02, 1.0, 0.0, 0.0)
+    loc.on_odometry(TwistData(9.02, 1.0, 0.0, 0.0))
     assert np.mean(loc.filter.particles[:, 0] - before[:, 0]) != 0.0
 
 

@@ -4,9 +4,16 @@ import math
 import numpy as np
 import pytest
 
-from localization.geometry import circular_mean, compose, inverse, quaternion_to_yaw, relative, wrap_angle, \
-    yaw_to_quaternion
-from localization.motion_model import MotionModel
+from localization.core.geometry import (
+    circular_mean,
+    compose,
+    inverse,
+    quaternion_to_yaw,
+    relative,
+    wrap_angle,
+    yaw_to_quaternion,
+)
+from localization.core.motion import MotionModel
 
 
 def test_wrap_angle_range():

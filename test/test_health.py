@@ -4,18 +4,21 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import corridor_map
-from localization import robustness_bench as RB
-from localization.datasets import trial_config
-from localization.health import AgreementScorer, HealthMonitor, cloud_spread
-from localization.localizer import Localizer
-from localization.mcl import MonteCarloLocalizer
-from localization.motion_model import MotionModel
-from localization.parameters import Parameters
-from localization.ray_casting import ExactRayCaster
+
+from localization.benchmarks import robustness as RB
+from localization.core.filter.mcl import MonteCarloLocalizer
+from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.core.localizer import Localizer
+from localization.core.motion import MotionModel
+from localization.core.occupancy_map import load_map
+from localization.core.odometry import TwistData
+from localization.core.parameters import Parameters
+from localization.core.raycast.exact import ExactRayCaster
+from localization.core.scan import ScanData
+from localization.eval.datasets import trial_config
 from localization.sensor_model import SensorModel
-from localization.simulator import load_map, simulate
+from localization.sim import simulate
 
 ANGLES = np.linspace(-2.356, 2.356, 1081)
 INC = ANGLES[1] - ANGLES[0]
@@ -159,16 +162,17 @@ def test_stationary_car_does_not_drift_and_tightens_once():
     ranges = ExactRayCaster(m, 10.0).cast(laser[None], angles)[0]
     loc.set_initial_pose(true + [0.1, 0.05, 0.05], np.diag([0.09, 0.09, 0.01]))
     spread0 = cloud_spread(loc.estimate.covariance)
-    loc.on_odometry(0.0, 0.0, 0.0, 0.0)
-    first = loc.on_scan(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)
+    loc.on_odometry(TwistData(0.0, 0.0, 0.0, 0.0))
+    first = loc.on_scan(ScanData(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0))
     assert first is not None  # a sensor update runs right after /initialpose, standing still
     spread1 = cloud_spread(first.covariance)
     assert spread1 < spread0
     mean1 = first.pose.copy()
     particles1 = loc.filter.particles.copy()
     for k in range(1, 400):  # 8 s standing: zero twist at 50 Hz, scans in between
-        loc.on_odometry(0.02 * k, 0.0, 0.0, 0.0)
-        assert loc.on_scan(0.02 * k + 0.01, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0) is None
+        loc.on_odometry(TwistData(0.02 * k, 0.0, 0.0, 0.0))
+        scan = ScanData(0.02 * k + 0.01, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)
+        assert loc.on_scan(scan) is None
     assert np.array_equal(loc.filter.particles, particles1)  # no motion noise, no resampling jitter
     est = loc.estimate
     assert np.allclose(est.pose, mean1) and cloud_spread(est.covariance) <= spread1 + 1e-12

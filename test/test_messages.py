@@ -12,10 +12,11 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
-from localization import messages  # noqa: E402
-from localization.conversions import pose_from_msg, stamp_to_sec  # noqa: E402
-from localization.geometry import compose  # noqa: E402
-from localization.occupancy_map import OccupancyMap  # noqa: E402
+from localization.core.geometry import compose  # noqa: E402
+from localization.core.occupancy_map import OccupancyMap  # noqa: E402
+from localization.ros import messages
+from localization.ros.conversions import pose_from_msg, stamp_to_sec  # noqa: E402
+from localization.ros.stamps import StampBook  # noqa: E402
 
 
 def test_odometry_msg_carries_pose_covariance_frames_and_stamp():
@@ -92,7 +93,7 @@ def test_map_to_odom_composes_back_to_the_estimate():
 
 def test_time_msg_and_stamp_book_keep_exact_nanoseconds():
     assert messages.time_msg(math.nan).sec == 0 and messages.time_msg(-1.0).sec == 0
-    book = messages.StampBook(size=2)
+    book = StampBook(size=2)
     exact = Time(sec=1_700_000_000, nanosec=123_456_789)
     t = book.remember(exact)
     got = book.lookup(t)

@@ -20,17 +20,16 @@ import pytest
 pytest.importorskip("rclpy")
 pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built into this venv (scripts/build_tf2_msgs.sh)")
 
+import node_harness as h  # noqa: E402
 import rclpy  # noqa: E402
 from geometry_msgs.msg import PoseArray  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 
-from localization.conversions import pose_from_msg, pose_from_pose_with_covariance  # noqa: E402
-from localization.geometry import compose, quaternion_to_yaw, wrap_angle  # noqa: E402
-from localization.localizer import Localizer  # noqa: E402
-from localization.occupancy_map import OccupancyMap  # noqa: E402
-from localization.parameters import Parameters  # noqa: E402
-
-import node_harness as h  # noqa: E402
+from localization.core.geometry import compose, quaternion_to_yaw, wrap_angle  # noqa: E402
+from localization.core.localizer import Localizer  # noqa: E402
+from localization.core.occupancy_map import OccupancyMap  # noqa: E402
+from localization.core.parameters import Parameters  # noqa: E402
+from localization.ros.conversions import pose_from_msg, pose_from_pose_with_covariance  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
@@ -352,12 +351,13 @@ def test_reinitialize_global_localization_service(runner):
 def test_real_bag_through_the_node_matches_the_core(runner, shared_dir):
     """The real racecar bag (ROS 1, replayed as CDR) on basement_fixed: the node's estimates are
     exactly those of the ROS-free core fed the same messages, and end in the diagonal corridor."""
-    from localization.bag_io import read_messages
-    from localization.conversions import scan_from_msg, twist_from_odometry
-    from nav_msgs.msg import Odometry as OdometryMsg
     from nav_msgs.msg import OccupancyGrid
+    from nav_msgs.msg import Odometry as OdometryMsg
     from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import LaserScan
+
+    from localization.bags import read_messages
+    from localization.ros.conversions import scan_from_msg, twist_from_odometry
 
     bag = shared_dir / "bags" / "rss2022" / "localization_bag3.bag"
     if not bag.exists():
@@ -376,10 +376,10 @@ def test_real_bag_through_the_node_matches_the_core(runner, shared_dir):
     for topic, msg, _ in msgs:
         if topic == "/scan":
             s = scan_from_msg(msg)
-            core.on_scan(s.stamp, s.ranges, s.angle_min, s.angle_max, s.angle_increment, s.range_min, s.range_max)
+            core.on_scan(s)
         else:
             tw = twist_from_odometry(msg)
-            core.on_odometry(tw.stamp, tw.vx, tw.vy, tw.wz)
+            core.on_odometry(tw)
 
     # the node, fed the recorded CDR bytes over DDS
     r = runner(**params)
@@ -405,7 +405,7 @@ def test_real_bag_through_the_node_matches_the_core(runner, shared_dir):
 def test_parameter_files_name_only_declared_parameters(name):
     import yaml
 
-    from localization.parameters import BY_NAME
+    from localization.core.parameters import BY_NAME
 
     section = yaml.safe_load((CONFIG / name).read_text())["particle_filter"]["ros__parameters"]
     assert set(section) <= set(BY_NAME), set(section) - set(BY_NAME)

@@ -1,10 +1,10 @@
 """Map loading (map_server semantics, rotated origin) and world <-> grid transforms."""
 import numpy as np
 import pytest
+from helpers import corridor_map, occupancy_grid_msg
 from PIL import Image
 
-from helpers import corridor_map, occupancy_grid_msg
-from localization.occupancy_map import MapError, OccupancyMap, occupancy_from_pixels
+from localization.core.occupancy_map import MapError, OccupancyMap, occupancy_from_pixels
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localization.bag_io import BagWriter, make_laser_scan, make_odometry, make_tf_message, make_transform_stamped
-from localization.play import main as play_main
+from localization.bags import BagWriter, make_laser_scan, make_odometry, make_tf_message, make_transform_stamped
+from localization.tools.play import main as play_main
 
 REPO = Path(__file__).resolve().parents[1]
 T0 = 1_650_000_000_000_000_000
@@ -32,7 +32,7 @@ def _env() -> dict:
 
 
 def _play(*args, timeout=30.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "localization.play", *map(str, args)], cwd=REPO, env=_env(),
+    return subprocess.run([sys.executable, "-m", "localization.tools.play", *map(str, args)], cwd=REPO, env=_env(),
                           capture_output=True, text=True, timeout=timeout)
 
 

@@ -1,7 +1,7 @@
 """The lookup-table ray caster (``range_table``), its fused sensor-model kernel, the compiled
 motion/resampling kernels and the benchmark's smoke run.
 
-Speed is measured by ``python -m localization.bench``, never asserted here."""
+Speed is measured by ``python -m localization.benchmarks.speed``, never asserted here."""
 from __future__ import annotations
 
 import json
@@ -13,17 +13,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import corridor_map
-from localization import mcl as mcl_module
-from localization import motion_model as motion_module
-from localization import range_table
-from localization.mcl import MonteCarloLocalizer
-from localization.motion_model import MotionModel
-from localization.occupancy_map import OccupancyMap
-from localization.parameters import Parameters
-from localization.range_table import LookupTableRayCaster, cache_file_name
-from localization.ray_casting import ExactRayCaster
+
+from localization.core import motion as motion_module
+from localization.core import paths
+from localization.core.filter import mcl as mcl_module
+from localization.core.filter.mcl import MonteCarloLocalizer
+from localization.core.motion import MotionModel
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.parameters import Parameters
+from localization.core.raycast import table_cache as table_cache_module
+from localization.core.raycast.exact import ExactRayCaster
+from localization.core.raycast.lookup_table import LookupTableRayCaster
+from localization.core.raycast.table_cache import cache_file_name
 from localization.sensor_model import SensorModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,9 +33,7 @@ BEAMS_270 = np.linspace(-2.356, 2.356, 60)
 
 
 def uniform_free_poses(occupancy_map, n, rng):
-    cells = occupancy_map.free_cells[rng.integers(0, len(occupancy_map.free_cells), n)]
-    colrow = cells[:, ::-1] + rng.uniform(-0.5, 0.5, (n, 2))
-    return np.column_stack([occupancy_map.grid_to_world(colrow), rng.uniform(-np.pi, np.pi, n)])
+    return occupancy_map.sample_free_poses(n, rng)
 
 
 def room_map():
@@ -52,9 +52,9 @@ def room_map():
 @pytest.fixture(autouse=True)
 def no_shared_tables():
     """Each test sees the disk cache, not tables another test left alive in this process."""
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
     yield
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
 
 
 @pytest.fixture(scope="module")
@@ -193,7 +193,7 @@ def test_cache_round_trip_is_identical_and_used(tmp_path, monkeypatch):
     monkeypatch.setattr(LookupTableRayCaster, "build_table", no_build)
     shared = LookupTableRayCaster.for_map(m, 3.0, 48, cache_dir=tmp_path)  # the first is still alive
     assert shared.table_source == "memory" and shared.table is first.table
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
     second = LookupTableRayCaster.for_map(m, 3.0, 48, cache_dir=tmp_path)
     assert second.loaded_from_cache and second.table_source == "disk" and second.cache_path == path
     assert second.table.dtype == np.uint16 and np.array_equal(first.table, second.table)
@@ -208,20 +208,20 @@ def test_cache_key_covers_map_content_range_and_bins(tmp_path):
     names = {cache_file_name(m, 3.0, 48), cache_file_name(m, 3.5, 48), cache_file_name(m, 3.0, 64),
              cache_file_name(other, 3.0, 48)}
     assert len(names) == 4
-    assert f"v{range_table.FORMAT_VERSION}" in cache_file_name(m, 3.0, 48)
+    assert f"v{table_cache_module.FORMAT_VERSION}" in cache_file_name(m, 3.0, 48)
 
 
 def test_cache_dir_from_the_environment(tmp_path, monkeypatch):
     monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path / "lut"))
-    assert range_table.default_cache_dir() == tmp_path / "lut"
+    assert paths.cache_dir() == tmp_path / "lut"
     m = corridor_map()
     LookupTableRayCaster.for_map(m, 2.0, 16)
     assert (tmp_path / "lut" / cache_file_name(m, 2.0, 16)).is_file()
     monkeypatch.delenv("LOCALIZATION_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert range_table.default_cache_dir() == tmp_path / "xdg" / "localization"
+    assert paths.cache_dir() == tmp_path / "xdg" / "localization"
     monkeypatch.delenv("XDG_CACHE_HOME")
-    assert range_table.default_cache_dir() == Path.home() / ".cache" / "localization"
+    assert paths.cache_dir() == Path.home() / ".cache" / "localization"
 
 
 def test_corrupt_or_unwritable_cache_only_costs_a_rebuild(tmp_path, caplog):
@@ -231,14 +231,14 @@ def test_corrupt_or_unwritable_cache_only_costs_a_rebuild(tmp_path, caplog):
     with caplog.at_level(logging.WARNING):
         caster = LookupTableRayCaster.for_map(m, 2.0, 16, cache_dir=tmp_path)
     assert not caster.loaded_from_cache and "rebuilding" in caplog.text
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
     assert LookupTableRayCaster.for_map(m, 2.0, 16, cache_dir=tmp_path).table_source == "disk"  # rewritten
     path.write_bytes(path.read_bytes()[:500])  # a truncated zip
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
     assert LookupTableRayCaster.for_map(m, 2.0, 16, cache_dir=tmp_path).table_source == "built"
     blocked = tmp_path / "a_file"
     blocked.write_text("")
-    range_table._LIVE_TABLES.clear()
+    table_cache_module.LIVE_TABLES.clear()
     caster = LookupTableRayCaster.for_map(m, 2.0, 16, cache_dir=blocked / "sub")  # cannot mkdir under a file
     assert not caster.loaded_from_cache and caster.cache_path is None
 
@@ -263,8 +263,7 @@ def test_fast_log_likelihood_equals_the_generic_path(tmp_path, monkeypatch, offs
     observation = sm.expected_ranges(particles[:1], angles)[0] + rng.normal(0, 0.05, angles.size)
     observation[::7] = np.inf
     fast = sm.log_likelihood(particles, observation, angles)
-    sm.fast_likelihood = False
-    generic = sm.log_likelihood(particles, observation, angles)
+    generic = sm.log_likelihood_numpy(particles, observation, angles)
     assert np.array_equal(np.isneginf(fast), np.isneginf(generic)) and np.isneginf(fast).any()
     finite = np.isfinite(generic)
     assert np.allclose(fast[finite], generic[finite], rtol=1e-12, atol=1e-9)
@@ -278,11 +277,10 @@ def test_numpy_fallback_of_the_fused_sums_matches(tmp_path):
     rng = np.random.default_rng(4)
     particles = uniform_free_poses(m, 200, rng)
     angles = np.linspace(-2, 2, 30)
-    z = sm.to_cells(sm.expected_ranges(particles[:1], angles)[0])
-    args = (particles, angles, sm._log_table[z], sm.cells_per_metre, sm.squash_factor, sm.laser_offset)
-    compiled = caster.log_likelihood_sums(*args)
-    caster.use_numba = False
-    assert np.allclose(caster.log_likelihood_sums(*args), compiled, rtol=1e-12, atol=1e-9)
+    observation = sm.expected_ranges(particles[:1], angles)[0]
+    compiled = sm.log_likelihood(particles, observation, angles)
+    caster.use_numba = False  # the beam model falls back to numpy over the caster's numpy cast
+    assert np.allclose(sm.log_likelihood(particles, observation, angles), compiled, rtol=1e-12, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------------ motion / resampling kernels
@@ -307,8 +305,8 @@ def test_compiled_resampling_equals_the_numpy_code(monkeypatch, n, roughening):
     weights[rng.random(n) < 0.3] = 0.0
     weights = weights / weights.sum() if weights.sum() > 0 else np.full(n, 1.0 / n)
     results = []
-    for kernel in (mcl_module._resample_kernel, None):
-        monkeypatch.setattr(mcl_module, "_resample_kernel", kernel)
+    for kernel in (mcl_module.resample_kernel, None):
+        monkeypatch.setattr(mcl_module, "resample_kernel", kernel)
         f = MonteCarloLocalizer(MotionModel(), SensorModel(), n, roughening=roughening, rng=11)
         f.particles = particles.copy()
         f.resample(weights)
@@ -319,8 +317,8 @@ def test_compiled_resampling_equals_the_numpy_code(monkeypatch, n, roughening):
 # ------------------------------------------------------------------------------------ the benchmark
 def test_bench_quick_json_prints_the_keys(tmp_path):
     env = dict(os.environ, LOCALIZATION_CACHE_DIR=str(tmp_path / "user-cache"))
-    out = subprocess.run([sys.executable, "-m", "localization.bench", "--quick", "--json"], cwd=ROOT, env=env,
-                         capture_output=True, text=True, timeout=600)
+    out = subprocess.run([sys.executable, "-m", "localization.benchmarks.speed", "--quick", "--json"], cwd=ROOT,
+                         env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     for key in ("workloads", "init_cold_s", "init_cached_s", "peak_rss_mb", "fast_vs_exact"):

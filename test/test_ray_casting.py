@@ -1,11 +1,11 @@
 """Ray casting: analytic distances in a hand-built corridor, and accuracy on the Stata basement."""
 import numpy as np
 import pytest
-
 from helpers import corridor_map
-from localization.geometry import compose
-from localization.occupancy_map import OccupancyMap
-from localization.ray_casting import DistanceTransformRayCaster, ExactRayCaster
+
+from localization.core.geometry import compose
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.raycast import DistanceTransformRayCaster, ExactRayCaster
 
 CASTERS = [ExactRayCaster, DistanceTransformRayCaster]
 

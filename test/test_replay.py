@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from localization import metrics as M
-from localization import replay as R
-from localization.bag_io import BagWriter, read_messages
-from localization.datasets import REAL_BAGS, real_bag_path, sim_bag
-from localization.geometry import compose
-from localization.occupancy_map import OccupancyMap
-from localization.parameters import Parameters, config_dir
+from localization.bags import BagWriter, read_messages
+from localization.core.geometry import compose
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.parameters import Parameters
+from localization.core.paths import config_dir
+from localization.eval import metrics as M
+from localization.eval.datasets import REAL_BAGS, real_bag_path, sim_bag
+from localization.tools import replay as R
 
 # The filter's cost grows with particles x beams; the test replays use fewer particles than the
 # default 2000 (the full figures come from localization-demo) and shorter simulated drives.
@@ -128,8 +129,8 @@ def test_real_bag_replay(tmp_path, name):
 @pytest.fixture(scope="module")
 def short_bags(tmp_path_factory):
     """2 s of trial 1: sqlite3 with /initialpose, MCAP without."""
-    from localization.datasets import trial_config
-    from localization.simulator import record
+    from localization.eval.datasets import trial_config
+    from localization.sim import record
     d = tmp_path_factory.mktemp("short")
     record(trial_config("trial1_noise0", duration=2.0), d / "sqlite")
     record(trial_config("trial1_noise0", duration=2.0, initial_pose=False), d / "mcap", storage="mcap")
@@ -156,7 +157,7 @@ def test_replay_is_deterministic_with_a_seed(tmp_path, short_bags):
 
 def test_truth_topic_odometry_gives_the_same_errors(tmp_path, short_bags):
     """Copy the bag with the /tf truth rewritten as nav_msgs/Odometry on /ground_truth."""
-    from localization.bag_io import make_odometry
+    from localization.bags import make_odometry
     src = short_bags / "sqlite"
     dst = tmp_path / "odom_truth"
     with BagWriter(dst) as w:
@@ -269,7 +270,7 @@ def test_scan_map_agreement_is_high_at_the_true_pose_and_drops_when_off():
     grid[0, :] = grid[-1, :] = grid[:, 0] = grid[:, -1] = 100
     grid[60:80, 120:140] = 100  # a pillar breaks the symmetry
     m = OccupancyMap(grid, res, (-5.0, -5.0, 0.0))
-    from localization.ray_casting import ExactRayCaster
+    from localization.core.raycast.exact import ExactRayCaster
     angles = np.linspace(-2.356, 2.356, 1081)
     pose = np.array([-1.0, 0.5, 0.3])
     laser = compose(pose, [0.275, 0.0, 0.0])

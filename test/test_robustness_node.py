@@ -4,20 +4,20 @@ import array
 import json
 import math
 
+import node_harness as h
 import numpy as np
 import pytest
+from helpers import corridor_map
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-import node_harness as h
-from helpers import corridor_map
-from localization import replay as R
-from localization.datasets import trial_config
-from localization.messages import occupancy_grid_msg
-from localization.particle_filter import ParticleFilterNode
-from localization.robustness_bench import corrupt_bag
-from localization.simulator import record
 from rclpy.parameter import Parameter
+
+from localization.eval.corrupt import corrupt_bag
+from localization.eval.datasets import trial_config
+from localization.ros.messages import occupancy_grid_msg
+from localization.ros.node import ParticleFilterNode
+from localization.sim import record
+from localization.tools import replay as R
 
 FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
 SMALL = st.one_of(st.floats(-5.0, 5.0), FLOATS)
@@ -172,7 +172,7 @@ def test_node_keeps_working_after_broken_input_and_publishes_health(node):
     n.on_map(n.good_map)
     n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
     _clear(n)
-    from localization.ray_casting import ExactRayCaster
+    from localization.core.raycast.exact import ExactRayCaster
     angles = h.ANGLE_MIN + np.arange(h.NUM_BEAMS) * h.ANGLE_INC
     t0 = h.T0_NS + 10**12
     pose = np.array([5.0, 1.5, 0.0])

@@ -1,12 +1,12 @@
 """The beam sensor model: the table, log-space evaluation, scoring, downsampling."""
 import numpy as np
 import pytest
-
 from helpers import corridor_map
-from localization.geometry import compose
-from localization.occupancy_map import OccupancyMap
-from localization.ray_casting import ExactRayCaster
-from localization.scan import downsample_scan
+
+from localization.core.geometry import compose
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.raycast.exact import ExactRayCaster
+from localization.core.scan import ScanData, downsample_scan
 from localization.sensor_model import SensorModel
 
 
@@ -104,13 +104,13 @@ def test_downsampling_with_invalid_ranges():
     ranges[0], ranges[540], ranges[1080] = np.nan, np.inf, -1.0
     ranges[270] = 65.533  # Hokuyo error code above range_max
     ranges[810] = 0.004  # below range_min
-    scan = downsample_scan(ranges, -2.356, 2.356, 4.712 / 1080, 0.02, 30.0, 5)
+    scan = downsample_scan(ScanData(0.0, ranges, -2.356, 2.356, 4.712 / 1080, 0.02, 30.0), 5)
     assert scan.ranges.size == 5
     assert np.allclose(scan.angles, [-2.356, -1.178, 0.0, 1.178, 2.356], atol=1e-3)
     assert np.all(np.isinf(scan.ranges[[0, 2, 4]]))
     assert np.isfinite(scan.ranges[1]) is np.False_ or scan.ranges[1] == np.inf  # 65.533 > 30
     assert np.isinf(scan.ranges[3])  # 0.004 < range_min
-    full = downsample_scan(ranges, -2.356, 2.356, 4.712 / 1080, 0.02, 30.0, 100)
+    full = downsample_scan(ScanData(0.0, ranges, -2.356, 2.356, 4.712 / 1080, 0.02, 30.0), 100)
     assert full.ranges.size == 100 and np.all(np.diff(full.angles) > 0)
     # invalid ranges count as max range: the sensor model maps them to z_max
     sm = SensorModel()

@@ -7,13 +7,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from localization import simulator as S
-from localization.bag_io import bag_info, read_messages, stamp_to_ns, yaw_from_quaternion
-from localization.conversions import stamp_to_sec
-from localization.datasets import REAL_BAGS, SIM_TRIALS, real_bag_path, sim_bag, trial_config
-from localization.geometry import compose, relative
-from localization.occupancy_map import OccupancyMap
-from localization.ray_casting import ExactRayCaster
+import localization.sim as S
+from localization.bags import bag_info, read_messages, stamp_to_ns
+from localization.core.geometry import compose, integrate_twist, relative, yaw_of
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.raycast.exact import ExactRayCaster
+from localization.eval import datasets
+from localization.eval.datasets import REAL_BAGS, SIM_TRIALS, real_bag_path, sim_bag, trial_config
+from localization.ros.conversions import stamp_to_sec
+from localization.tools import simulate as simulate_cli
 
 
 @pytest.fixture(scope="module")
@@ -167,8 +169,8 @@ def test_bag_ground_truth_and_initial_pose(short_recording):
     for m in read_messages(path, ["/tf"]):
         (tf,) = m.msg.transforms
         assert (tf.header.frame_id, tf.child_frame_id) == ("map", "base_link")
-        truth.append((stamp_to_sec(tf.header.stamp), tf.transform.translation.x, tf.transform.translation.y,
-                      yaw_from_quaternion(tf.transform.rotation)))
+        tr = tf.transform.translation
+        truth.append((stamp_to_sec(tf.header.stamp), tr.x, tr.y, yaw_of(tf.transform.rotation)))
     truth = np.array(truth)
     assert truth[0, 1:] == pytest.approx(cfg.start, abs=1e-9)
     steps = np.rint((truth[1:, 0] - truth[1, 0]) * S.PHYSICS_RATE_HZ).astype(int)
@@ -178,7 +180,7 @@ def test_bag_ground_truth_and_initial_pose(short_recording):
     assert stamps <= {round(t, 6) for t in truth[:, 0]}
     (init,) = [m.msg for m in read_messages(path, ["/initialpose"])]
     p = init.pose.pose
-    offset = np.array([p.position.x, p.position.y, yaw_from_quaternion(p.orientation)]) - np.asarray(cfg.start)
+    offset = np.array([p.position.x, p.position.y, yaw_of(p.orientation)]) - np.asarray(cfg.start)
     assert offset == pytest.approx(cfg.initial_offset, abs=1e-9)
     assert np.hypot(*offset[:2]) == pytest.approx(0.5) and offset[2] == pytest.approx(0.2)
     cov = np.asarray(init.pose.covariance).reshape(6, 6)
@@ -193,9 +195,9 @@ def test_odometry_pose_integrates_the_reported_twist(short_recording):
     for prev, cur in zip(odoms[:-1], odoms[1:]):
         dt = (stamp_to_ns(cur.header.stamp) - stamp_to_ns(prev.header.stamp)) * 1e-9
         tw = cur.twist.twist
-        pose = compose(pose, S._twist_arc(tw.linear.x, tw.linear.y, tw.angular.z, dt))
+        pose = compose(pose, integrate_twist(tw.linear.x, tw.linear.y, tw.angular.z, dt))
     last = odoms[-1].pose.pose
-    assert pose == pytest.approx([last.position.x, last.position.y, yaw_from_quaternion(last.orientation)],
+    assert pose == pytest.approx([last.position.x, last.position.y, yaw_of(last.orientation)],
                                  abs=1e-6)
 
 
@@ -234,15 +236,15 @@ def test_mcap_storage(tmp_path, stata):
 
 def test_cli_records_a_bag(tmp_path, capsys):
     out = tmp_path / "cli"
-    assert S.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1", "--odom-noise", "0.6",
+    assert simulate_cli.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1", "--odom-noise", "0.6",
                    "--no-initialpose", "--storage", "mcap"]) == 0
     assert "wrote" in capsys.readouterr().out
     info = bag_info(out)
     assert "/initialpose" not in info.topics and info.topics["/odom"].count == 51
     # exists already
-    assert S.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1"]) == 1
+    assert simulate_cli.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1"]) == 1
     assert "exists" in capsys.readouterr().err
-    assert S.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1", "--overwrite"]) == 0
+    assert simulate_cli.main([str(out), "--trial", "trial2_noise0.3", "--duration", "1", "--overwrite"]) == 0
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -252,7 +254,7 @@ def test_cli_records_a_bag(tmp_path, capsys):
     (["--trial", "trial1_noise0", "--speed", "9"], "--speed"),
 ])
 def test_cli_errors_are_one_clear_line(tmp_path, capsys, argv, message):
-    assert S.main([str(tmp_path / "x"), *argv]) == 1
+    assert simulate_cli.main([str(tmp_path / "x"), *argv]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("localization-simulate: error:") and message in err and "\n" not in err
 
@@ -260,7 +262,7 @@ def test_cli_errors_are_one_clear_line(tmp_path, capsys, argv, message):
 def test_custom_waypoints_from_the_command_line(tmp_path, capsys):
     wp = tmp_path / "route.txt"
     wp.write_text("# x y\n-8.45 18.4\n-10.4 16.3\n")
-    assert S.main([str(tmp_path / "b"), "--start=-6.6,20.5,-2.24", "--waypoints", str(wp)]) == 0
+    assert simulate_cli.main([str(tmp_path / "b"), "--start=-6.6,20.5,-2.24", "--waypoints", str(wp)]) == 0
     assert bag_info(tmp_path / "b").topics["/scan"].count > 40
 
 
@@ -272,7 +274,7 @@ def test_sim_bag_is_cached_by_config(tmp_path, monkeypatch):
         calls.append(a[0])
         return real_record(*a, **k)
 
-    monkeypatch.setattr(S, "record", counting_record)
+    monkeypatch.setattr(datasets, "record", counting_record)
     a = sim_bag("trial1_noise0", cache=tmp_path, duration=0.5)
     b = sim_bag("trial1_noise0", cache=tmp_path, duration=0.5)
     c = sim_bag("trial1_noise0", cache=tmp_path, duration=0.6)

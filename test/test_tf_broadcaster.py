@@ -8,13 +8,13 @@ import time
 
 import pytest
 import rclpy
+from geometry_msgs.msg import TransformStamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from geometry_msgs.msg import TransformStamped
-from localization import tf_broadcaster
-from localization.tf_broadcaster import TransformBroadcaster
+from localization.ros import tf_broadcaster
+from localization.ros.tf_broadcaster import TransformBroadcaster
 
 try:
     from tf2_msgs.msg import TFMessage

@@ -1,0 +1,308 @@
+"""End-to-end latency of the live ``particle_filter`` node: scan stamp → published pose.
+
+    python -m localization.benchmarks.latency [--particles 4000] [--duration 20] [--json]
+    python -m localization.benchmarks.speed --latency-only    (the same, from the speed benchmark)
+
+Starts the node in its own process (``config/real_params.yaml``, ``--particles``, and
+``update_min_distance`` / ``update_min_angle`` 0 so that every scan updates the filter: the worst
+case), publishes the ``basement_fixed`` map and an initial pose, then replays the
+three real RSS 2022 racecar bags (1081-beam Hokuyo scans at ~40 Hz, VESC odometry at 50 Hz) into
+it **at real time**, cyclically until ``--duration`` seconds have been streamed, re-sending each
+bag's start pose before it. Every scan and odometry message is restamped with the wall clock
+just before it is published, so
+
+    latency = (wall time the pose on /pf/pose/odom with that scan's stamp is received) − stamp
+
+covers DDS both ways, queueing in the node, the sensor update and the pose/particles/TF output.
+Prints median / p95 / max latency, how many scans produced a pose, the odometry → pose latency
+too, and the node's peak memory (VmHWM). A node that cannot keep up shows a latency growing
+through the run (compare the first and second half) and scans without a pose.
+
+ROS discovery is kept on this host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in a random
+``ROS_DOMAIN_ID`` unless one is set, so concurrent test runs do not cross-talk.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+BAG_TOPICS = ("/scan", "/vesc/odom")
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _set_stamp(header, t_ns: int) -> None:
+    header.stamp.sec, header.stamp.nanosec = t_ns // 1_000_000_000, t_ns % 1_000_000_000
+
+
+def _load_bags():
+    """[(name, start pose, [(t_rel_s, topic, rclpy message)])] for the real RSS 2022 bags."""
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import LaserScan
+
+    from localization.bags import read_messages
+    from localization.eval.datasets import REAL_BAGS, real_bag_path
+
+    types = {"/scan": LaserScan, "/vesc/odom": Odometry}
+    bags = []
+    for name, info in REAL_BAGS.items():
+        msgs = [(m.t_ns, m.topic, deserialize_message(m.raw_cdr, types[m.topic]))
+                for m in read_messages(real_bag_path(name), list(BAG_TOPICS))]
+        t0 = msgs[0][0]
+        bags.append((name, info.start, [((t - t0) * 1e-9, topic, msg) for t, topic, msg in msgs]))
+    return bags
+
+
+def _peak_rss_mb(pid: int) -> dict:
+    out = {}
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key in ("VmHWM", "VmRSS"):
+                out[key] = int(value.split()[0]) / 1024.0
+    except OSError:
+        pass
+    return {"node_peak_rss_mb": out.get("VmHWM"), "node_rss_mb": out.get("VmRSS")}
+
+
+def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: str | None = None,
+                    params_file=None, ready_timeout: float = 180.0, progress=None, extra_params=()) -> dict:
+    """Run the node, stream the real bags into it at real time, return the latency statistics."""
+    say = progress or (lambda msg: None)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(101, 200)))
+    try:
+        import rclpy
+        from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import LaserScan
+    except ImportError as exc:
+        return {"error": f"rclpy is not available: {exc}"}
+    from localization.core.geometry import yaw_to_quaternion
+    from localization.core.occupancy_map import OccupancyMap, resolve_map_path
+    from localization.core.paths import config_dir
+    from localization.ros import messages
+
+    say("loading the bags and the map ...")
+    try:
+        bags = _load_bags()
+    except Exception as exc:  # noqa: BLE001 - report, do not crash the benchmark
+        return {"error": f"cannot read the real bags: {exc}"}
+    map_msg = messages.occupancy_grid_msg(OccupancyMap.from_yaml(resolve_map_path("basement_fixed")))
+    params_file = Path(params_file) if params_file else config_dir() / "real_params.yaml"
+
+    log = tempfile.NamedTemporaryFile(prefix="latency-node-", suffix=".log", delete=False)
+    # every scan updates the filter (no minimum travel between updates): the worst case
+    cmd = [sys.executable, "-m", "localization.particle_filter", "--ros-args", "--params-file", str(params_file),
+           "-p", f"num_particles:={particles}", "-p", "random_seed:=0", "-p", "update_min_distance:=0.0",
+           "-p", "update_min_angle:=0.0", "-p", "odom_topic:=/vesc/odom", "-p", "scan_topic:=/scan"]
+    if ray_caster:
+        cmd += ["-p", f"ray_caster:={ray_caster}"]
+    else:
+        from localization.core.parameters import Parameters
+        ray_caster = Parameters.from_yaml(params_file).ray_caster
+    for item in extra_params:  # NAME:=VALUE
+        cmd += ["-p", item]
+    say(f"starting the node ({particles} particles, {ray_caster}) ...")
+    node_proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
+
+    rclpy.init()
+    node = rclpy.create_node("latency_bench")
+    map_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub_map = node.create_publisher(type(map_msg), "/map", map_qos)
+    pub_init = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 10)
+    pub_scan = node.create_publisher(LaserScan, "/scan", qos_profile_sensor_data)
+    pub_odom = node.create_publisher(Odometry, "/vesc/odom", 50)
+    poses = []  # (receive wall ns, stamp ns)
+    poses_lock = threading.Lock()
+    clouds = threading.Event()
+
+    def on_pose(msg):
+        now = time.time_ns()
+        with poses_lock:
+            poses.append((now, _stamp_ns(msg.header.stamp)))
+
+    def on_pose_or_cloud(msg):
+        clouds.set()
+        if isinstance(msg, Odometry):
+            on_pose(msg)
+
+    node.create_subscription(Odometry, "/pf/pose/odom", on_pose_or_cloud, 100)
+    # raw: the cloud only signals readiness; decoding 500 poses per scan would load this process
+    node.create_subscription(PoseArray, "/pf/particles", on_pose_or_cloud, 5, raw=True)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+
+    still = Odometry()  # a parked car: makes a ready node publish a pose even without particle output
+    still.header.frame_id, still.child_frame_id = "odom", "base_link"
+    still.pose.pose.orientation.w = 1.0
+
+    def initial_pose(pose) -> bool:
+        """Send an initial pose (and two still odometry messages) until the node answers with a
+        particle cloud or a pose."""
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = "map"
+        msg.pose.pose.position.x, msg.pose.pose.position.y = float(pose[0]), float(pose[1])
+        q = yaw_to_quaternion(pose[2])
+        msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = float(q[2]), float(q[3])
+        cov = np.zeros((6, 6))
+        cov[0, 0] = cov[1, 1] = 0.3 ** 2
+        cov[5, 5] = 0.1 ** 2
+        msg.pose.covariance = cov.ravel().tolist()
+        clouds.clear()
+        for _ in range(int(ready_timeout)):
+            _set_stamp(msg.header, time.time_ns())
+            pub_init.publish(msg)
+            for _ in range(2):
+                time.sleep(0.02)
+                _set_stamp(still.header, time.time_ns())
+                pub_odom.publish(still)
+            if clouds.wait(1.0):
+                return True
+            if node_proc.poll() is not None:
+                return False
+        return False
+
+    scans_sent, odoms_sent = {}, {}
+    result = {"particles": particles, "ray_caster": ray_caster, "scan_hz": 40.0, "odom_hz": 50.0,
+              "extra_params": list(extra_params), "load_average_start": os.getloadavg()[0]}
+    try:
+        say("waiting for the node (map + initial pose; a cold start builds the range table) ...")
+        t_wait = time.perf_counter()
+        pub_map.publish(map_msg)
+        if not initial_pose(bags[0][1]):
+            tail = Path(log.name).read_text()[-2000:]
+            return {"error": f"the node did not become ready within {ready_timeout:.0f} s; its log ends:\n{tail}"}
+        result["node_ready_s"] = time.perf_counter() - t_wait
+        say(f"streaming the real bags at real time for {duration:g} s ...")
+        streamed = 0.0
+        rounds = 0
+        while streamed < duration:
+            for name, start, msgs in bags:
+                if streamed >= duration:
+                    break
+                if rounds > 0 or name != bags[0][0]:
+                    initial_pose(start)
+                time.sleep(0.2)
+                t0 = time.monotonic()
+                for t_rel, topic, msg in msgs:
+                    if streamed + t_rel >= duration:
+                        break
+                    delay = t0 + t_rel - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    stamp = time.time_ns()
+                    _set_stamp(msg.header, stamp)
+                    if topic == "/scan":
+                        scans_sent[stamp] = streamed + t_rel
+                        pub_scan.publish(msg)
+                    else:
+                        odoms_sent[stamp] = streamed + t_rel
+                        pub_odom.publish(msg)
+                streamed += min(msgs[-1][0], duration - streamed)
+            rounds += 1
+        time.sleep(1.0)  # let the last outputs arrive
+        result.update(_peak_rss_mb(node_proc.pid))
+        result["load_average_end"] = os.getloadavg()[0]
+    finally:
+        if node_proc.poll() is None:
+            node_proc.send_signal(signal.SIGINT)
+            try:
+                node_proc.wait(10)
+            except subprocess.TimeoutExpired:
+                node_proc.kill()
+                node_proc.wait()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        log.close()
+
+    with poses_lock:
+        received = list(poses)
+    scan_lat, scan_when, odom_lat = [], [], []
+    for recv, stamp in received:
+        if stamp in scans_sent:
+            scan_lat.append((recv - stamp) * 1e-6)
+            scan_when.append(scans_sent.pop(stamp))
+        elif stamp in odoms_sent:
+            odom_lat.append((recv - stamp) * 1e-6)
+            odoms_sent.pop(stamp)
+    if not scan_lat:
+        return {**result, "error": f"no pose came back for any scan; node log: {log.name}"}
+    lat, when = np.asarray(scan_lat), np.asarray(scan_when)
+    half = when < np.median(when)
+    result.update(
+        duration_s=duration, scans_sent=len(scan_lat) + len(scans_sent), poses_from_scans=len(scan_lat),
+        scans_skipped=len(scans_sent),
+        latency_ms_median=float(np.median(lat)), latency_ms_p95=float(np.percentile(lat, 95)),
+        latency_ms_max=float(lat.max()),
+        latency_ms_median_first_half=float(np.median(lat[half])) if half.any() else None,
+        latency_ms_median_second_half=float(np.median(lat[~half])) if (~half).any() else None,
+        odom_latency_ms_median=float(np.median(odom_lat)) if odom_lat else None,
+        odom_latency_ms_p95=float(np.percentile(odom_lat, 95)) if odom_lat else None,
+        odom_poses=len(odom_lat), node_log=log.name,
+    )
+    return result
+
+
+def format_latency(lat: dict) -> str:
+    if "error" in lat:
+        return f"latency: not measured ({lat['error']})"
+    return (f"latency (live node, {lat['particles']} particles, {lat['ray_caster']}, every scan updating, "
+            f"{lat['scan_hz']:g} Hz scans + {lat['odom_hz']:g} Hz odometry at real time for {lat['duration_s']:g} s): "
+            f"scan stamp -> published pose median {lat['latency_ms_median']:.1f} ms, "
+            f"p95 {lat['latency_ms_p95']:.1f} ms, "
+            f"max {lat['latency_ms_max']:.1f} ms; {lat['poses_from_scans']} of {lat['scans_sent']} scans produced a "
+            f"pose ({lat['scans_skipped']} replaced by a newer scan before their turn, or lost)")
+
+
+def format_result(r: dict) -> str:
+    text = format_latency(r)
+    if "error" not in r:
+        text += (f"\n  first half median {r['latency_ms_median_first_half']:.1f} ms, second half "
+                 f"{r['latency_ms_median_second_half']:.1f} ms (growing = queueing); odometry -> pose median "
+                 f"{r['odom_latency_ms_median']:.1f} ms, p95 {r['odom_latency_ms_p95']:.1f} ms over "
+                 f"{r['odom_poses']} messages\n  node peak RSS {r['node_peak_rss_mb']:.0f} MB; ready "
+                 f"{r['node_ready_s']:.1f} s after start; load average {r['load_average_start']:.1f} -> "
+                 f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}")
+    return text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m localization.benchmarks.latency", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--particles", type=int, default=4000)
+    ap.add_argument("--duration", type=float, default=20.0, help="seconds of stream (default 20)")
+    ap.add_argument("--ray-caster", default=None, help="default: the parameter file's",
+                    choices=["lookup_table", "lookup_table_exact", "distance_transform", "exact"])
+    ap.add_argument("--params", type=Path, help="parameter file (default config/real_params.yaml)")
+    ap.add_argument("-p", "--param", dest="extra", action="append", default=[], metavar="NAME:=VALUE",
+                    help="extra node parameter (repeatable), e.g. -p max_particles_published:=0")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    r = measure_latency(args.particles, args.duration, args.ray_caster, args.params, progress=progress,
+                        extra_params=args.extra)
+    print(json.dumps(r) if args.json else format_result(r))
+    return 1 if "error" in r else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

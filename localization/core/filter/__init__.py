@@ -1,0 +1,1 @@
+"""The particle filter (``mcl.MonteCarloLocalizer``) and its resampling (``resampling``)."""

@@ -1,0 +1,149 @@
+"""Monte Carlo Localization: the particle filter itself (no ROS).
+
+State: N particles (x, y, θ) in the map frame and their log-weights.
+
+    predict:   p_i ← motion_model(p_i, u)                       on every odometry delta u
+    correct:   log w_i ← log w_i + log p(z | p_i)              on every scan z
+               normalise in log space (log-sum-exp)
+    resample:  systematic (low-variance) resampling when ESS < fraction · N,
+               then a small Gaussian roughening so the cloud never collapses to one state
+    estimate:  weighted mean of x, y; circular mean of θ; weighted covariance (θ wrapped)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
+from localization.core.geometry import wrap_angle
+from localization.core.motion import MotionModel
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.sensors import SensorModel
+
+
+@dataclass
+class Estimate:
+    pose: np.ndarray  # (3,) x, y, θ
+    covariance: np.ndarray  # (3, 3) over x, y, θ
+
+
+@dataclass
+class SensorUpdateResult:
+    ok: bool  # False when every particle had likelihood 0 (weights left unchanged)
+    resampled: bool
+    ess: float  # effective sample size after the update, before resampling
+    mean_log_likelihood: float  # log of the weighted-mean likelihood (a health signal)
+
+
+class MonteCarloLocalizer:
+    def __init__(self, motion_model: MotionModel, sensor_model: SensorModel, num_particles: int = 2000,
+                 resample_ess_fraction: float = 1.0, roughening=(0.01, 0.01, 0.005), rng=None):
+        if num_particles < 1:
+            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        self.motion_model = motion_model
+        self.sensor_model = sensor_model
+        self.num_particles = int(num_particles)
+        self.resample_ess_fraction = float(resample_ess_fraction)
+        self.roughening = np.asarray(roughening, dtype=float).reshape(3)
+        self.rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        self.particles = np.zeros((self.num_particles, 3))
+        self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
+        self.initialized = False
+
+    # ------------------------------------------------------------------ initialisation
+    def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
+        """Particles drawn around ``pose`` from N(pose, covariance), or independent ``std``."""
+        pose = np.asarray(pose, dtype=float).reshape(3)
+        if covariance is not None:
+            cov = np.asarray(covariance, dtype=float).reshape(3, 3)
+            cov = 0.5 * (cov + cov.T)
+            vals, vecs = np.linalg.eigh(cov)
+            noise = (self.rng.standard_normal((self.num_particles, 3)) * np.sqrt(np.clip(vals, 0, None))) @ vecs.T
+        else:
+            noise = self.rng.standard_normal((self.num_particles, 3)) * np.asarray(std, dtype=float)
+        self.particles = pose + noise
+        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+        self._reset_weights()
+
+    def initialize_uniform(self, occupancy_map: OccupancyMap) -> None:
+        """Global localization: particles uniform over the map's free cells, headings uniform."""
+        self.particles = occupancy_map.sample_free_poses(self.num_particles, self.rng)
+        self._reset_weights()
+
+    def resize(self, num_particles: int) -> None:
+        """Change the particle count. An initialised cloud is resampled (systematic, by weight) to
+        the new count, so its distribution is kept; the next initialisation uses the new count."""
+        n = int(num_particles)
+        if n < 1:
+            raise ValueError(f"num_particles must be >= 1, got {n}")
+        if self.initialized and n != self.num_particles:
+            self.particles = self.particles[systematic_indices(self.weights, n, self.rng.random())]
+            self.log_weights = np.full(n, -np.log(n))
+        self.num_particles = n
+
+    def _reset_weights(self) -> None:
+        self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
+        self.initialized = True
+
+    # ------------------------------------------------------------------ updates
+    def motion_update(self, odometry) -> None:
+        """Move every particle by the robot-frame odometry delta [dx, dy, dθ]."""
+        self.motion_model.evaluate(self.particles, odometry, out=self.particles)
+
+    def sensor_update(self, ranges, angles) -> SensorUpdateResult:
+        """Weight particles by the scan, normalise, and resample when the ESS is low."""
+        log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles)
+        combined = self.log_weights + log_lik
+        peak = combined.max()
+        if not np.isfinite(peak):
+            return SensorUpdateResult(False, False, 0.0, -np.inf)
+        # log of the weighted-mean likelihood (per beam, squashed): used as a health signal
+        mean_ll = float(peak + np.log(np.exp(combined - peak).sum()))
+        self.log_weights = combined - mean_ll
+        weights = np.exp(self.log_weights)
+        ess = float(1.0 / np.dot(weights, weights))
+        resampled = False
+        if ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0:
+            self.resample(weights)
+            resampled = True
+        return SensorUpdateResult(True, resampled, ess, mean_ll)
+
+    def resample(self, weights=None) -> None:
+        """Systematic (low-variance) resampling, then roughening."""
+        if weights is None:
+            weights = self.weights
+        n = self.num_particles
+        if resample_kernel is not None and self.particles.shape == (n, 3) and len(weights) == n:
+            # one compiled O(N) pass: the same draws, indices and arithmetic as the numpy code below
+            u0 = self.rng.random()
+            rough = self.roughening.any()
+            noise = self.rng.standard_normal((n, 3)) if rough else NO_NOISE
+            out = np.empty((n, 3))
+            resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
+                             self.roughening, out)
+            self.particles = out
+            self.log_weights = np.full(n, -np.log(n))
+            return
+        self.particles = self.particles[systematic_indices(weights, n, self.rng.random())]
+        if self.roughening.any():
+            self.particles += self.rng.standard_normal((n, 3)) * self.roughening
+            self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+        self.log_weights = np.full(n, -np.log(n))
+
+    # ------------------------------------------------------------------ estimate
+    @property
+    def weights(self) -> np.ndarray:
+        w = np.exp(self.log_weights - self.log_weights.max())
+        return w / w.sum()
+
+    def estimate(self) -> Estimate:
+        """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped)."""
+        w = self.weights
+        x = float(np.dot(w, self.particles[:, 0]))
+        y = float(np.dot(w, self.particles[:, 1]))
+        th = float(np.arctan2(np.dot(w, np.sin(self.particles[:, 2])), np.dot(w, np.cos(self.particles[:, 2]))))
+        diff = self.particles - np.array([x, y, th])
+        diff[:, 2] = wrap_angle(diff[:, 2])
+        cov = (diff * w[:, None]).T @ diff
+        return Estimate(np.array([x, y, th]), cov)

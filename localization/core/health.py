@@ -1,0 +1,127 @@
+"""Filter health: is the estimate still where the scans say it is? (numpy only, no ROS)
+
+Two pieces:
+
+- ``AgreementScorer``: the scan–map agreement of one pose — the fraction of valid beams whose
+  endpoint lies within ``tolerance`` (0.10 m) of an occupied map cell. It is also the truth-free
+  quality figure of ``localization.metrics`` (which re-exports it from here).
+- ``HealthMonitor``: after every sensor update the Localizer scores the estimate against the
+  (downsampled) scan and feeds the agreement ``a_k`` to two exponential moving averages, as in
+  augmented MCL (Thrun, Burgard, Fox, *Probabilistic Robotics*, table 8.3) but on the agreement
+  rather than on the raw likelihood (whose scale depends on the beam count and squash factor)::
+
+      fast_k = fast_{k-1} + α_fast (a_k − fast_{k-1})        α_fast ≈ 0.2  (a few updates)
+      slow_k = slow_{k-1} + α_slow (a_k − slow_{k-1})        α_slow ≈ 0.02 (seconds)
+
+  The filter is *lost* when, for ``lost_updates`` sensor updates in a row, ``fast`` is below
+  the absolute ``lost_floor`` or below ``lost_ratio · slow`` (a sudden drop from what this
+  environment normally scores). ``health`` (published on ``/pf/health``) is ``fast`` in [0, 1].
+
+  The monitor only judges a *converged* cloud: while particles are still spread (global
+  localization, recovery), the estimate is a mean over many hypotheses and its agreement says
+  nothing; the Localizer calls ``reset()`` after every (re-)initialisation.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.geometry import compose
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.parameters import default
+
+AGREEMENT_TOLERANCE_M = 0.10
+
+
+class AgreementScorer:
+    """Scan–map agreement of scans against one map (caches the distance field)."""
+
+    def __init__(self, occupancy_map: OccupancyMap, laser_offset=(0.0, 0.0, 0.0),
+                 tolerance: float = AGREEMENT_TOLERANCE_M):
+        self.map = occupancy_map
+        self.laser_offset = np.asarray(laser_offset, dtype=float).reshape(3)
+        self.tolerance = float(tolerance)
+        # cell-centre distances, so "within tolerance" of a wall means within tolerance + half a cell
+        self.near = occupancy_map.near_obstacle(self.tolerance + 0.5 * occupancy_map.resolution)
+        self._angles_key = None
+        self._angles = None
+
+    def endpoints(self, base_pose, ranges, angles, range_min: float, range_max: float) -> np.ndarray:
+        """World xy (K, 2) of the valid beams' endpoints seen from ``base_pose``."""
+        r = np.asarray(ranges, dtype=float).ravel()
+        a = np.asarray(angles, dtype=float).ravel()
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(r) & (r >= range_min) & (r < range_max)
+        laser = compose(np.asarray(base_pose, dtype=float), self.laser_offset)
+        th = laser[2] + a[valid]
+        return np.column_stack([laser[0] + r[valid] * np.cos(th), laser[1] + r[valid] * np.sin(th)])
+
+    def score(self, base_pose, ranges, angles, range_min: float, range_max: float) -> float:
+        """Fraction of valid beams ending within ``tolerance`` of an occupied cell (NaN: none valid)."""
+        pts = self.endpoints(base_pose, ranges, angles, range_min, range_max)
+        if len(pts) == 0:
+            return math.nan
+        cr = self.map.world_to_grid(pts)
+        inside = self.map.in_bounds(cr)
+        return float(np.count_nonzero(self.near[cr[inside, 1], cr[inside, 0]]) / len(pts))
+
+
+@dataclass
+class HealthMonitor:
+    """Fast/slow moving averages of the scan–map agreement and the ``lost`` decision."""
+
+    fast_alpha: float = default("health_fast_alpha")
+    slow_alpha: float = default("health_slow_alpha")
+    lost_floor: float = default("health_lost_floor")
+    lost_ratio: float = default("health_lost_ratio")
+    lost_updates: int = default("health_lost_updates")
+
+    def __post_init__(self):
+        self.reset()
+
+    @classmethod
+    def from_params(cls, params) -> "HealthMonitor":
+        return cls(params.health_fast_alpha, params.health_slow_alpha, params.health_lost_floor,
+                   params.health_lost_ratio, params.health_lost_updates)
+
+    def reset(self, keep_slow: bool = False) -> None:
+        """Forget the history (after an initialisation): the next agreement starts the fast
+        average. ``keep_slow``: keep the long-term average (what this map and sensor normally
+        score), so a cloud that re-converges to a wrong place is still judged against it; without
+        one, the next agreement starts it too."""
+        self.fast = math.nan
+        if not (keep_slow and math.isfinite(getattr(self, "slow", math.nan))):
+            self.slow = math.nan
+        self.low_count = 0
+        self.samples = 0
+
+    @property
+    def health(self) -> float:
+        """The fast average in [0, 1]; NaN before the first sample."""
+        return self.fast
+
+    def update(self, agreement: float) -> bool:
+        """Feed one agreement value (NaN: no valid beam, ignored); returns True when lost."""
+        if not math.isfinite(agreement):
+            return False
+        a = min(max(float(agreement), 0.0), 1.0)
+        if self.samples == 0:
+            self.fast = a
+            self.slow = a if math.isnan(self.slow) else self.slow + self.slow_alpha * (a - self.slow)
+        else:
+            self.fast += self.fast_alpha * (a - self.fast)
+            self.slow += self.slow_alpha * (a - self.slow)
+        self.samples += 1
+        low = self.fast < self.lost_floor or self.fast < self.lost_ratio * self.slow
+        self.low_count = self.low_count + 1 if low else 0
+        return self.low_count >= self.lost_updates
+
+
+def cloud_spread(covariance) -> float:
+    """Position spread (m) of a particle cloud: sqrt of the largest xy covariance eigenvalue."""
+    cov = np.asarray(covariance, dtype=float)[:2, :2]
+    if not np.all(np.isfinite(cov)):
+        return math.inf
+    return float(math.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T))[-1], 0.0)))

@@ -1,0 +1,38 @@
+"""Ray casters: expected ranges (N sensor poses × B beam angles) in an occupancy map.
+
+All share ``RayCaster``'s conventions (``exact.py``): rays stop at the first cell that is not
+known free, ranges in metres clipped to ``max_range``, a sensor in a blocking cell sees 0.
+
+==================== ============================== ============================================
+name                 class                          what
+==================== ============================== ============================================
+lookup_table         LookupTableRayCaster           precomputed table, interpolated (real time)
+lookup_table_exact   LookupTableRayCaster(refine=1) the table plus an exact finish per beam
+distance_transform   DistanceTransformRayCaster     sphere tracing (no precomputation)
+exact                ExactRayCaster                 Amanatides–Woo traversal: the reference
+==================== ============================== ============================================
+"""
+from __future__ import annotations
+
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.raycast.distance_transform import DistanceTransformRayCaster
+from localization.core.raycast.exact import ExactRayCaster, RayCaster
+from localization.core.raycast.lookup_table import DEFAULT_THETA_BINS, LookupTableRayCaster
+
+RAY_CASTERS = ("lookup_table", "lookup_table_exact", "distance_transform", "exact")
+
+__all__ = ["RAY_CASTERS", "DistanceTransformRayCaster", "ExactRayCaster", "LookupTableRayCaster", "RayCaster",
+           "make_ray_caster"]
+
+
+def make_ray_caster(kind: str, occupancy_map: OccupancyMap, max_range: float,
+                    theta_bins: int = DEFAULT_THETA_BINS) -> RayCaster:
+    """The caster ``kind`` (one of ``RAY_CASTERS``) for a map; lookup tables go through the disk cache."""
+    if kind == "exact":
+        return ExactRayCaster(occupancy_map, max_range)
+    if kind == "distance_transform":
+        return DistanceTransformRayCaster(occupancy_map, max_range)
+    if kind in ("lookup_table", "lookup_table_exact"):
+        return LookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,
+                                            refine=1.0 if kind == "lookup_table_exact" else 0.0)
+    raise ValueError(f"unknown ray caster {kind!r} ({', '.join(RAY_CASTERS)})")

@@ -1,0 +1,78 @@
+"""Laser scans in the core: the full scan as received (``ScanData``, the fields of a
+sensor_msgs/LaserScan) and the downsampled beams the sensor model uses (``Scan``).
+
+    beam i:  angle_i = angle_min + i · angle_increment,   time_i = stamp + i · time_increment
+
+(the header stamp is the first beam's time; ``scan_time`` the sweep period). Invalid ranges (NaN,
+±inf, outside [range_min, range_max]) become ``inf``: a max-range reading.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ScanData:
+    """A full scan as received (sensor_msgs/LaserScan's fields, stamps in float seconds)."""
+
+    stamp: float  # s, time of the first beam
+    ranges: np.ndarray  # m
+    angle_min: float  # rad
+    angle_max: float  # rad
+    angle_increment: float  # rad
+    range_min: float  # m
+    range_max: float  # m
+    time_increment: float = 0.0  # s between beams (0: unknown)
+    scan_time: float = 0.0  # s between scans (0: unknown)
+    frame_id: str = ""
+
+
+@dataclass
+class Scan:
+    """The beams used by the sensor model, in the laser frame: ranges (metres; ``inf`` = no
+    return) at angles (rad)."""
+
+    ranges: np.ndarray
+    angles: np.ndarray
+
+
+def beam_angles(num_ranges: int, angle_min: float, angle_max: float, angle_increment: float) -> np.ndarray:
+    """Angles of all beams. The increment is trusted when it agrees with angle_min/max;
+    otherwise the beams are spread evenly over [angle_min, angle_max]."""
+    if num_ranges <= 1:
+        return np.full(num_ranges, float(angle_min))
+    span = (num_ranges - 1) * angle_increment
+    consistent = abs(angle_min + span - angle_max) <= abs(angle_increment)
+    if np.isfinite(angle_increment) and angle_increment != 0 and consistent:
+        return angle_min + np.arange(num_ranges) * angle_increment
+    return np.linspace(angle_min, angle_max, num_ranges)
+
+
+def downsample_indices(num_ranges: int, num_beams: int) -> np.ndarray:
+    """``num_beams`` indices spread evenly over ``num_ranges`` beams (first and last included)."""
+    if num_ranges <= 0:
+        return np.empty(0, dtype=np.int64)
+    num_beams = max(1, min(int(num_beams), num_ranges))
+    return np.unique(np.rint(np.linspace(0, num_ranges - 1, num_beams)).astype(np.int64))
+
+
+def clean_ranges(ranges, range_min: float, range_max: float) -> np.ndarray:
+    """NaN, ±inf and ranges outside [range_min, range_max] become ``inf`` (max range)."""
+    r = np.asarray(ranges, dtype=float)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(r) & (r >= range_min) & (r <= range_max)
+    return np.where(valid, r, np.inf)
+
+
+def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = None,
+                    range_max: float | None = None) -> Scan:
+    """Pick ``num_beams`` evenly spread beams of a full scan; invalid ranges count as max range
+    (``range_min``/``range_max`` replace the scan's own limits when given)."""
+    ranges = np.asarray(scan.ranges, dtype=float).ravel()
+    idx = downsample_indices(ranges.size, num_beams)
+    angles = beam_angles(ranges.size, scan.angle_min, scan.angle_max, scan.angle_increment)[idx]
+    lo = scan.range_min if range_min is None else range_min
+    hi = scan.range_max if range_max is None else range_max
+    return Scan(clean_ranges(ranges[idx], lo, hi), angles)

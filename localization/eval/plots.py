@@ -1,0 +1,117 @@
+"""Plots of a localization run (matplotlib, Agg backend: files only, no display needed)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from localization.core.occupancy_map import OccupancyMap
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def map_image(occupancy_map: OccupancyMap, xlim, ylim, resolution: float | None = None) -> np.ndarray:
+    """The map resampled onto a world-aligned raster over ``xlim`` x ``ylim`` (rows from the
+    bottom): 0 occupied, 1 free, 0.75 unknown / off the map. Exact for any origin yaw."""
+    res = resolution or occupancy_map.resolution
+    xs = np.arange(xlim[0], xlim[1], res) + 0.5 * res
+    ys = np.arange(ylim[0], ylim[1], res) + 0.5 * res
+    gx, gy = np.meshgrid(xs, ys)
+    cr = occupancy_map.world_to_grid(np.stack([gx, gy], axis=-1))
+    inside = occupancy_map.in_bounds(cr)
+    img = np.full(gx.shape, 0.75)
+    data = occupancy_map.data[cr[..., 1][inside], cr[..., 0][inside]]
+    img[inside] = np.where(data >= 50, 0.0, np.where(data >= 0, 1.0, 0.75))
+    return img
+
+
+def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=None, initial_pose=None,
+                    title: str = "", margin: float = 3.0) -> Path:
+    """Map, ground truth (if any) and estimated trajectory; the view fits both plus ``margin``."""
+    plt = _pyplot()
+    est = np.asarray(est_poses, dtype=float).reshape(-1, 3)
+    pts = [est[:, :2]]
+    if truth_poses is not None and len(truth_poses):
+        pts.append(np.asarray(truth_poses, dtype=float)[:, :2])
+    allp = np.vstack(pts) if sum(len(p) for p in pts) else np.zeros((1, 2))
+    allp = allp[np.all(np.isfinite(allp), axis=1)]
+    if not len(allp):
+        allp = np.zeros((1, 2))
+    lo, hi = allp.min(axis=0) - margin, allp.max(axis=0) + margin
+    span = hi - lo
+    res = max(occupancy_map.resolution, float(span.max()) / 2000.0)
+    img = map_image(occupancy_map, (lo[0], hi[0]), (lo[1], hi[1]), res)
+    aspect = span[1] / max(span[0], 1e-6)
+    w = 10.0
+    fig, ax = plt.subplots(figsize=(w, float(np.clip(w * aspect, 4.0, 14.0))))
+    ax.imshow(img, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray", vmin=0, vmax=1,
+              interpolation="nearest")
+    if truth_poses is not None and len(truth_poses):
+        tp = np.asarray(truth_poses, dtype=float)
+        ax.plot(tp[:, 0], tp[:, 1], "-", color="tab:green", lw=2.0, label="ground truth")
+        ax.plot(tp[0, 0], tp[0, 1], "o", color="tab:green", ms=7)
+    if len(est):
+        ax.plot(est[:, 0], est[:, 1], "-", color="tab:red", lw=1.0, label="estimate")
+    if initial_pose is not None:
+        x, y, th = initial_pose
+        ax.arrow(x, y, 0.8 * np.cos(th), 0.8 * np.sin(th), width=0.08, color="tab:blue", label="initial pose")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, agreement_t=None, agreement=None,
+                title: str = "", threshold: float = 0.2) -> Path:
+    """CT error (and heading error) vs time when there is truth, scan–map agreement vs time."""
+    plt = _pyplot()
+    has_truth = ct_t is not None and len(ct_t) > 0
+    has_agree = agreement_t is not None and len(agreement_t) > 0
+    rows = int(has_truth) + int(has_agree) or 1
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 3.2 * rows), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    i = 0
+    if has_truth:
+        ax = axes[i]
+        i += 1
+        t = np.asarray(ct_t) - t0
+        ax.plot(t, ct_error, color="tab:red", lw=1.0, label="cross-track error")
+        ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"{threshold} m")
+        ax.set_ylabel("CT error (m)")
+        ax.set_ylim(bottom=0)
+        if heading_error is not None:
+            ax2 = ax.twinx()
+            ax2.plot(t, np.degrees(heading_error), color="tab:blue", lw=0.6, alpha=0.6)
+            ax2.set_ylabel("heading error (deg)", color="tab:blue")
+            ax2.set_ylim(bottom=0)
+        ax.legend(loc="upper right", fontsize=8)
+        ax.set_title(title)
+    if has_agree:
+        ax = axes[i]
+        ax.plot(np.asarray(agreement_t) - t0, agreement, color="tab:purple", lw=1.0)
+        ax.set_ylabel("scan-map agreement")
+        ax.set_ylim(0, 1.02)
+        if not has_truth:
+            ax.set_title(title)
+    if not (has_truth or has_agree):
+        axes[0].text(0.5, 0.5, "no data", ha="center", va="center", transform=axes[0].transAxes)
+    axes[-1].set_xlabel("time since start (s)")
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

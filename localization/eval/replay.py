@@ -1,0 +1,482 @@
+"""``localization-replay``: run the localizer over a recorded bag as fast as the CPU allows.
+
+Usage::
+
+    localization-replay BAG --map MAP.yaml [--params FILE] [--out DIR] [--initial-pose X,Y,YAW]
+                        [--global] [--seed N] [--scan-topic T] [--odom-topic T] [--truth-topic T]
+                        [--particles N] [-p NAME=VALUE ...] [--no-plots] [--progress/--no-progress]
+
+``BAG``: a rosbag2 directory (sqlite3 or MCAP), a bare ``.db3`` / ``.mcap`` file, or a ROS 1
+``.bag``. Every scan, odometry and initial-pose message goes, in bag-time order, through exactly
+what the node does with it: the duck-typed converters of ``localization.conversions`` and the
+``Localizer`` (``on_odometry``, ``on_scan``, ``set_initial_pose``). Stamps come from the
+messages, so the result does not depend on how fast the replay runs.
+
+Initial pose: ``--initial-pose``, else every ``/initialpose`` message of the bag (as the node
+would receive it), else global localization (``--global`` forces it).
+
+Ground truth (optional): TF ``map -> base_link`` on ``/tf`` (what ``localization-simulate``
+records, like the racecar simulator), or ``--truth-topic`` carrying nav_msgs/Odometry,
+geometry_msgs/PoseStamped, PoseWithCovarianceStamped or tf2_msgs/TFMessage.
+
+Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the current directory):
+
+- ``poses.csv``: ``t,x,y,theta``, one row per estimate the node would publish;
+- ``metrics.json``: CT error statistics, heading error and time to converge (with truth),
+  scan–map agreement, update timing, effective update rate (see ``localization.metrics``);
+- ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures;
+- ``trajectory.png`` (map, truth, estimate) and ``error.png`` (errors and agreement vs time).
+
+Exit status: 0 success; 1 when the bag, map, parameters or a topic are missing or unusable
+(one line ``localization-replay: error: ...`` on stderr); 2 bad command-line arguments.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from localization.bags import BagError, open_bag
+from localization.core.geometry import wrap_angle, yaw_of
+from localization.core.localizer import Localizer
+from localization.core.occupancy_map import MapError, OccupancyMap
+from localization.core.occupancy_map import load_map as load_occupancy_map
+from localization.core.parameters import Parameters
+from localization.core.scan import beam_angles
+from localization.eval import metrics as M
+from localization.eval.feed import Feeder
+from localization.ros.conversions import (
+    pose_from_msg,
+    pose_from_pose_with_covariance,
+    scan_from_msg,
+    stamp_to_sec,
+    twist_from_odometry,
+)
+
+PROG = "localization-replay"
+
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+TRUTH_TYPES = (ODOMETRY, POSE_STAMPED, POSE_COV, TF_MESSAGE)
+
+
+class ReplayError(RuntimeError):
+    """A replay that cannot run: the message is one line saying what is wrong."""
+
+
+@dataclass
+class ReplayOptions:
+    bag: Path
+    map: str
+    params: Parameters = field(default_factory=Parameters)
+    initial_pose: tuple | None = None
+    force_global: bool = False
+    scan_topic: str | None = None  # default: params.scan_topic
+    odom_topic: str | None = None  # default: params.odom_topic
+    truth_topic: str | None = None  # default: /tf when it holds map -> base_link
+    truth_frames: tuple = ("map", "base_link")
+    progress: bool = False
+    label: str = ""
+
+
+@dataclass
+class ReplayResult:
+    options: ReplayOptions
+    bag_path: Path
+    map_path: Path
+    occupancy_map: OccupancyMap
+    est_t: np.ndarray
+    est_poses: np.ndarray
+    truth_t: np.ndarray
+    truth_poses: np.ndarray
+    agreement_t: np.ndarray
+    agreement: np.ndarray
+    sensor_times: list
+    motion_times: list
+    filter_time: float  # seconds spent inside on_scan / on_odometry
+    wall_time: float  # the whole replay (reading, filtering, scoring)
+    bag_duration: float
+    counts: dict
+    initial_pose_source: str
+    initial_pose: np.ndarray | None
+    init_t: float | None  # stamp of the (first) initialisation: convergence is timed from here
+    scan_topic: str
+    odom_topic: str
+    truth_source: str | None
+    health_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
+    health: np.ndarray = field(default_factory=lambda: np.zeros(0))  # Localizer.health (scan-map agreement)
+
+    @property
+    def has_truth(self) -> bool:
+        return len(self.truth_t) > 0
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+# --------------------------------------------------------------------------------------------
+
+
+def _strip(frame: str) -> str:
+    return frame[1:] if frame.startswith("/") else frame
+
+
+class _Progress:
+    """A one-line progress bar on stderr (redrawn at most 10 times a second)."""
+
+    def __init__(self, enabled: bool, start_ns: int, end_ns: int, label: str):
+        self.enabled = enabled
+        self.start, self.span = start_ns, max(end_ns - start_ns, 1)
+        self.label = label
+        self.t_wall = time.perf_counter()
+        self.last = 0.0
+
+    def update(self, t_ns: int, force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        if not force and now - self.last < 0.1:
+            return
+        self.last = now
+        frac = min(max((t_ns - self.start) / self.span, 0.0), 1.0)
+        bag_s = frac * self.span * 1e-9
+        speed = bag_s / max(now - self.t_wall, 1e-9)
+        bar = "#" * int(frac * 30)
+        sys.stderr.write(f"\r{self.label} [{bar:<30}] {frac * 100:5.1f}% {bag_s:6.1f}/{self.span * 1e-9:.1f} s "
+                         f"bag time, {speed:4.1f}x real time")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.update(self.start + self.span, force=True)
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+def load_map(name_or_path) -> OccupancyMap:
+    try:
+        return load_occupancy_map(name_or_path)
+    except MapError as exc:
+        raise ReplayError(str(exc)) from None
+
+
+def _check_topic(infos: dict, topic: str, wanted: tuple, what: str, option: str, bag_path) -> None:
+    if topic not in infos:
+        same = [n for n, i in infos.items() if i.msgtype in wanted]
+        hint = f" ({what} topics there: {', '.join(same)}; use {option})" if same else f" (it has no {what} topic)"
+        raise ReplayError(f"{what} topic {topic} not in bag {bag_path}{hint}")
+    info = infos[topic]
+    if info.msgtype not in wanted:
+        raise ReplayError(f"topic {topic} in {bag_path} has type {info.msgtype}, expected {' or '.join(wanted)}")
+    if info.count == 0:
+        raise ReplayError(f"no {what} messages on {topic} in bag {bag_path}")
+
+
+def run_replay(opts: ReplayOptions) -> ReplayResult:
+    """Replay a bag through the Localizer; collect estimates, truth, agreement and timing."""
+    t_wall0 = time.perf_counter()
+    params = opts.params
+    occupancy_map = load_map(opts.map)
+    map_path = occupancy_map.source
+    scan_topic = opts.scan_topic or params.scan_topic
+    odom_topic = opts.odom_topic or params.odom_topic
+    init_topic = params.initialpose_topic
+    parent, child = (_strip(f) for f in opts.truth_frames)
+
+    try:
+        bag = open_bag(opts.bag)
+    except BagError as exc:
+        raise ReplayError(str(exc)) from None
+    with bag:
+        infos = bag.topic_infos
+        _check_topic(infos, scan_topic, (LASER_SCAN,), "scan", "--scan-topic", bag.path)
+        _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag.path)
+        truth_topic = opts.truth_topic
+        if truth_topic is not None:
+            if truth_topic not in infos:
+                raise ReplayError(f"truth topic {truth_topic} not in bag {bag.path}")
+            if infos[truth_topic].msgtype not in TRUTH_TYPES:
+                raise ReplayError(f"truth topic {truth_topic} has type {infos[truth_topic].msgtype}, expected one "
+                                  f"of {', '.join(TRUTH_TYPES)}")
+        elif "/tf" in infos and infos["/tf"].msgtype == TF_MESSAGE:
+            truth_topic = "/tf"
+        use_bag_initialpose = (opts.initial_pose is None and not opts.force_global and init_topic in infos
+                               and infos[init_topic].msgtype == POSE_COV and infos[init_topic].count > 0)
+        if opts.initial_pose is not None:
+            init_source = "--initial-pose"
+        elif opts.force_global:
+            init_source = "global (--global)"
+        elif use_bag_initialpose:
+            init_source = f"{init_topic} in the bag"
+        else:
+            init_source = "global (no initial pose given or in the bag)"
+
+        localizer = Localizer(params)
+        localizer.set_map(occupancy_map)
+        scorer = M.AgreementScorer(occupancy_map, (params.laser_offset_x, params.laser_offset_y,
+                                                   params.laser_offset_yaw))
+        topics = [scan_topic, odom_topic] + ([init_topic] if use_bag_initialpose else []) \
+            + ([truth_topic] if truth_topic else [])
+        progress = _Progress(opts.progress, bag.start_ns, bag.end_ns, opts.label or bag_label(opts.bag))
+        bag_duration = (bag.end_ns - bag.start_ns) * 1e-9
+
+        feeder = Feeder(localizer)
+        log = feeder.log
+        truth_t, truth_poses = [], []
+        agree_t, agree = [], []
+        initialised = False
+        initial_pose = None
+        init_t = None  # stamp of the first initialisation
+        angles_cache: dict = {}
+        try:
+            for m in bag.messages(topics):
+                progress.update(m.t_ns)
+                topic = m.topic
+                if topic == truth_topic:
+                    _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_poses)
+                    if topic not in (scan_topic, odom_topic, init_topic):
+                        continue
+                if topic == init_topic and use_bag_initialpose:
+                    pc = pose_from_pose_with_covariance(m.msg)
+                    feeder.initial_pose(pc.pose, pc.covariance, pc.stamp)
+                    if initial_pose is None:
+                        initial_pose, init_t = pc.pose, pc.stamp
+                    initialised = True
+                    continue
+                if topic == odom_topic:
+                    data = twist_from_odometry(m.msg)
+                elif topic == scan_topic:
+                    data = scan_from_msg(m.msg)
+                else:
+                    continue
+                if not initialised and not use_bag_initialpose:
+                    initial_pose, init_t = _initialise(localizer, opts, data.stamp), data.stamp
+                    initialised = True
+                if topic == odom_topic:
+                    feeder.odometry(data)
+                    continue
+                feeder.scan(data)
+                current = localizer.estimate
+                if current is not None:
+                    key = (data.ranges.size, data.angle_min, data.angle_max, data.angle_increment)
+                    if key not in angles_cache:
+                        angles_cache[key] = beam_angles(*key)
+                    a = scorer.score(current.pose, data.ranges, angles_cache[key], data.range_min, data.range_max)
+                    if math.isfinite(a):
+                        agree_t.append(data.stamp)
+                        agree.append(a)
+        except BagError as exc:
+            raise ReplayError(str(exc)) from None
+        finally:
+            progress.close()
+
+    counts = log.counts
+    if counts["scans"] == 0:
+        raise ReplayError(f"no scan messages on {scan_topic} in bag {opts.bag}")
+    if counts["odometry"] == 0:
+        raise ReplayError(f"no odometry messages on {odom_topic} in bag {opts.bag}")
+    truth_t_arr = np.asarray(truth_t, dtype=float)
+    truth_p_arr = np.asarray(truth_poses, dtype=float).reshape(-1, 3)
+    order = np.argsort(truth_t_arr, kind="stable")
+    counts["recoveries"] = localizer.recoveries
+    est_t, est_poses = log.estimates()
+    res = ReplayResult(
+        options=opts, bag_path=Path(opts.bag), map_path=map_path, occupancy_map=occupancy_map,
+        est_t=est_t, est_poses=est_poses, truth_t=truth_t_arr[order], truth_poses=truth_p_arr[order],
+        agreement_t=np.asarray(agree_t, dtype=float), agreement=np.asarray(agree, dtype=float),
+        sensor_times=log.sensor_times, motion_times=log.motion_times, filter_time=log.filter_time,
+        wall_time=time.perf_counter() - t_wall0, bag_duration=bag_duration, counts=counts,
+        initial_pose_source=init_source, initial_pose=initial_pose, init_t=init_t, scan_topic=scan_topic,
+        odom_topic=odom_topic,
+        truth_source=(f"{truth_topic} ({parent} -> {child})" if truth_topic == "/tf" else truth_topic)
+        if len(truth_t) else None,
+        health_t=np.asarray(log.health_t, dtype=float), health=np.asarray(log.health, dtype=float))
+    return res
+
+
+def _initialise(localizer: Localizer, opts: ReplayOptions, stamp: float):
+    """Initial pose from the command line, else global localization."""
+    if opts.initial_pose is not None and not opts.force_global:
+        pose = np.asarray(opts.initial_pose, dtype=float)
+        localizer.set_initial_pose(pose, None, stamp)
+        return pose
+    localizer.initialize_global(stamp)
+    return None
+
+
+def _collect_truth(msg, msgtype: str, parent: str, child: str, out_t: list, out_p: list) -> None:
+    if msgtype == TF_MESSAGE:
+        for tf in msg.transforms:
+            if _strip(tf.header.frame_id) == parent and _strip(tf.child_frame_id) == child:
+                tr = tf.transform.translation
+                out_t.append(stamp_to_sec(tf.header.stamp))
+                out_p.append((float(tr.x), float(tr.y), yaw_of(tf.transform.rotation)))
+    elif msgtype == ODOMETRY or msgtype == POSE_COV:
+        out_t.append(stamp_to_sec(msg.header.stamp))
+        out_p.append(tuple(pose_from_msg(msg.pose.pose)))
+    elif msgtype == POSE_STAMPED:
+        out_t.append(stamp_to_sec(msg.header.stamp))
+        out_p.append(tuple(pose_from_msg(msg.pose)))
+
+
+# --------------------------------------------------------------------------------------------
+# Metrics and outputs
+# --------------------------------------------------------------------------------------------
+
+
+def compute_metrics(res: ReplayResult) -> dict:
+    p = res.options.params
+    out = {
+        "bag": str(res.bag_path),
+        "map": str(res.map_path),
+        "scan_topic": res.scan_topic,
+        "odom_topic": res.odom_topic,
+        "num_particles": p.num_particles,
+        "num_beams_per_particle": p.num_beams_per_particle,
+        "ray_caster": p.ray_caster,
+        "random_seed": p.random_seed,
+        "initial_pose_source": res.initial_pose_source,
+        "initial_pose": None if res.initial_pose is None else [float(v) for v in res.initial_pose],
+        "estimates": int(len(res.est_t)),
+        **{k: int(v) for k, v in res.counts.items()},
+        "bag_duration_s": res.bag_duration,
+        "wall_time_s": res.wall_time,
+        "realtime_factor": res.bag_duration / res.wall_time if res.wall_time > 0 else None,
+        "sensor_update_ms": M.timing_stats(res.sensor_times),
+        "motion_update_ms": M.timing_stats(res.motion_times),
+        # sensor updates per second of filter time (all on_scan + on_odometry calls): the scan
+        # rate this filter could keep up with live on this CPU
+        "effective_update_rate_hz": (res.counts["sensor_updates"] / res.filter_time) if res.filter_time > 0 else None,
+        "scan_map_agreement": M.agreement_stats(res.agreement),
+        "agreement_tolerance_m": M.AGREEMENT_TOLERANCE_M,
+        "max_jump_m": M.max_jump(res.est_poses),
+        "has_truth": res.has_truth,
+        "truth_source": res.truth_source,
+        "health": M.agreement_stats(res.health),  # the filter's own health figure (fast average)
+    }
+    if res.has_truth:
+        cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
+        out["ct_error_m"] = M.error_stats(cmp.ct_error)
+        out["heading_error_mean_abs_rad"] = float(cmp.heading_error.mean()) if cmp.heading_error.size else None
+        t_start = res.init_t if res.init_t is not None else (float(res.est_t[0]) if len(res.est_t) else None)
+        out["time_to_converge_s"] = M.time_to_converge(cmp.t, cmp.ct_error, M.CONVERGENCE_THRESHOLD_M, t_start)
+        if res.initial_pose is not None and len(res.truth_t):
+            truth0 = M.interpolate_poses([res.init_t], res.truth_t, res.truth_poses)[0]
+            if np.all(np.isfinite(truth0)):
+                out["initial_pose_error_m"] = float(np.hypot(*(np.asarray(res.initial_pose)[:2] - truth0[:2])))
+                out["initial_pose_heading_error_rad"] = float(abs(wrap_angle(res.initial_pose[2] - truth0[2])))
+        out["converge_threshold_m"] = M.CONVERGENCE_THRESHOLD_M
+        out["scored_estimates"] = int(cmp.t.size)
+    return out
+
+
+def bag_label(bag) -> str:
+    """A short name for a bag path (the folder's parent for the cache's ``<trial>-<key>/bag``)."""
+    p = Path(bag).expanduser().resolve()
+    return p.parent.name if p.name == "bag" and p.parent.name else p.name
+
+
+def default_out_dir(bag: Path) -> Path:
+    stem = bag_label(bag) or "bag"
+    stem = stem.rsplit(".", 1)[0] if Path(stem).suffix in (".bag", ".db3", ".mcap") else stem
+    base = Path.cwd() / f"replay-{stem}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out, k = base, 1
+    while out.exists():
+        k += 1
+        out = Path(f"{base}-{k}")
+    return out
+
+
+def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool = True) -> dict:
+    """poses.csv, metrics.json, agreement.csv, errors.csv (with truth), trajectory.png, error.png."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReplayError(f"cannot create output folder {out_dir}: {exc}") from None
+    files = {}
+    with open(out_dir / "poses.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t", "x", "y", "theta"])
+        for t, (x, y, th) in zip(res.est_t, res.est_poses):
+            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
+    files["poses"] = out_dir / "poses.csv"
+    with open(out_dir / "agreement.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t", "agreement"])
+        for t, a in zip(res.agreement_t, res.agreement):
+            w.writerow([f"{t:.6f}", f"{a:.4f}"])
+    cmp = None
+    if res.has_truth:
+        cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
+        with open(out_dir / "errors.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["t", "ct_error", "heading_error"])
+            for t, e, h in zip(cmp.t, cmp.ct_error, cmp.heading_error):
+                w.writerow([f"{t:.6f}", f"{e:.5f}", f"{h:.6f}"])
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    files["metrics"] = out_dir / "metrics.json"
+    if plots:
+        from localization.eval.plots import plot_errors, plot_trajectory
+        title = res.options.label or bag_label(res.bag_path)
+        files["trajectory"] = plot_trajectory(out_dir / "trajectory.png", res.occupancy_map, res.est_poses,
+                                              res.truth_poses if res.has_truth else None, res.initial_pose,
+                                              title=title)
+        t0 = res.init_t if res.init_t is not None else (
+            float(res.est_t[0]) if len(res.est_t) else (float(res.agreement_t[0]) if len(res.agreement_t) else 0.0))
+        files["error"] = plot_errors(out_dir / "error.png", t0,
+                                     cmp.t if cmp is not None else None, cmp.ct_error if cmp is not None else None,
+                                     cmp.heading_error if cmp is not None else None,
+                                     res.agreement_t, res.agreement, title=title)
+    return files
+
+
+def _fmt(v, spec=".3f", unit=""):
+    return "n/a" if v is None else f"{v:{spec}}{unit}"
+
+
+def summary_table(metrics: dict, out_dir: Path | None = None) -> str:
+    m = metrics
+    rows = [("bag", m["bag"]),
+            ("initial pose", m["initial_pose_source"]),
+            ("messages", f"{m['scans']} scans, {m['odometry']} odometry -> {m['estimates']} estimates "
+                         f"({m['sensor_updates']} sensor updates)")]
+    if m.get("has_truth"):
+        ct = m["ct_error_m"]
+        rows += [("CT error (m)", f"mean {_fmt(ct['mean'])}  median {_fmt(ct['median'])}  p95 {_fmt(ct['p95'])}  "
+                                  f"max {_fmt(ct['max'])}  rms {_fmt(ct['rms'])}"),
+                 ("heading error", "mean |err| " + _fmt(
+                     None if m["heading_error_mean_abs_rad"] is None else math.degrees(m["heading_error_mean_abs_rad"]),
+                     ".2f", " deg")),
+                 ("converged", ("never" if m["time_to_converge_s"] is None else f"{m['time_to_converge_s']:.2f} s")
+                  + f" (below {m['converge_threshold_m']} m for good, from the initial pose"
+                  + (f" {m['initial_pose_error_m']:.2f} m / {m['initial_pose_heading_error_rad']:.2f} rad off)"
+                     if "initial_pose_error_m" in m else ")"))]
+    ag = m["scan_map_agreement"]
+    rows += [("scan-map agreement", f"median {_fmt(ag['median'])}  mean {_fmt(ag['mean'])}  p05 {_fmt(ag['p05'])}"),
+             ("filter health", f"median {_fmt((m.get('health') or {}).get('median'))}  "
+                               f"min {_fmt((m.get('health') or {}).get('min'))}; "
+                               f"{m.get('recoveries', 0)} recoveries (global re-spreads)"),
+             ("max jump", f"{m['max_jump_m']:.3f} m between consecutive estimates"),
+             ("sensor update", f"median {_fmt(m['sensor_update_ms']['median_ms'], '.1f')} ms, "
+                               f"p95 {_fmt(m['sensor_update_ms']['p95_ms'], '.1f')} ms "
+                               f"({m['num_particles']} particles x {m['num_beams_per_particle']} beams, "
+                               f"{m['ray_caster']})"),
+             ("motion update", f"median {_fmt(m['motion_update_ms']['median_ms'], '.2f')} ms, "
+                               f"p95 {_fmt(m['motion_update_ms']['p95_ms'], '.2f')} ms"),
+             ("update rate", f"{_fmt(m['effective_update_rate_hz'], '.1f')} Hz effective; "
+                             f"{_fmt(m['realtime_factor'], '.2f')}x real time "
+                             f"({m['bag_duration_s']:.1f} s of bag in {m['wall_time_s']:.1f} s)")]
+    if out_dir is not None:
+        rows.append(("outputs", str(out_dir)))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)

@@ -1,0 +1,152 @@
+"""Core -> ROS message builders for the node's outputs (and a map message for tests/simulators).
+
+They import the message packages but not rclpy, and never emit a NaN or an infinity:
+
+* ``odometry_msg`` / ``transform_msg`` return ``None`` for a non-finite pose (the caller skips
+  publishing); a non-finite covariance becomes "unknown" (``UNKNOWN_VARIANCE`` on the diagonal);
+* ``pose_array_cdr`` (the particle cloud, serialized with numpy: fast) drops non-finite particles
+  and draws at most ``max_count`` of them.
+
+Stamps are ``builtin_interfaces/Time`` messages or float seconds (see ``time_msg``).
+"""
+from __future__ import annotations
+
+import array
+
+import numpy as np
+from geometry_msgs.msg import Pose, Quaternion, TransformStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
+from std_msgs.msg import Float32
+
+from localization.core.geometry import compose, inverse, yaw_to_quaternion
+from localization.core.occupancy_map import OccupancyMap
+from localization.ros.stamps import time_msg
+
+UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
+COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+
+
+def _finite_pose(pose) -> np.ndarray | None:
+    pose = np.asarray(pose, dtype=float).reshape(-1)
+    if pose.size != 3 or not np.all(np.isfinite(pose)):
+        return None
+    return pose
+
+
+def pose_msg(pose) -> Pose:
+    """geometry_msgs/Pose of a finite planar pose [x, y, yaw]."""
+    x, y, yaw = (float(v) for v in pose)
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(yaw))
+    msg = Pose()
+    msg.position.x, msg.position.y, msg.position.z = x, y, 0.0
+    msg.orientation = Quaternion(x=qx, y=qy, z=qz, w=qw)
+    return msg
+
+
+def covariance_6x6(covariance) -> list[float]:
+    """The 3×3 (x, y, yaw) covariance as a row-major 6×6 ROS covariance (other entries 0).
+    Non-finite input (or the wrong shape) becomes ``UNKNOWN_VARIANCE`` on the x, y, yaw diagonal."""
+    out = np.zeros((6, 6))
+    cov = None if covariance is None else np.asarray(covariance, dtype=float)
+    if cov is None or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        for i in COV_INDEX:
+            out[i, i] = UNKNOWN_VARIANCE
+    else:
+        out[np.ix_(COV_INDEX, COV_INDEX)] = 0.5 * (cov + cov.T)
+    return [float(v) for v in out.ravel()]
+
+
+def odometry_msg(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> Odometry | None:
+    """nav_msgs/Odometry carrying the estimate (twist left zero); None if the pose is not finite."""
+    pose = _finite_pose(pose)
+    if pose is None:
+        return None
+    msg = Odometry()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose = pose_msg(pose)
+    msg.pose.covariance = covariance_6x6(covariance)
+    return msg
+
+
+def select_particles(particles, max_count: int) -> np.ndarray:
+    """The finite rows of ``particles`` (N, 3), thinned to at most ``max_count`` evenly spaced ones."""
+    p = np.asarray(particles, dtype=float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if max_count <= 0:
+        return p[:0]
+    if len(p) > max_count:
+        p = p[np.linspace(0, len(p) - 1, max_count).round().astype(np.intp)]
+    return p
+
+
+def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
+    """The serialized (CDR, little endian) geometry_msgs/PoseArray of (at most ``max_count``)
+    particles, built with numpy: what the node publishes (``publisher.publish(bytes)``).
+
+    Building 500 ``Pose`` objects in Python takes ~35 ms, longer than a whole sensor update at
+    thousands of particles; this takes ~0.05 ms. Layout (offsets from the end of the 4-byte
+    encapsulation header): header.stamp int32 sec, uint32 nanosec; header.frame_id uint32
+    length (with the NUL) + bytes + NUL; uint32 pose count; padding to 8; then per pose 7
+    float64: position x, y, z, orientation x, y, z, w (the padding only when a pose follows).
+    """
+    p = select_particles(particles, max_count)
+    t = time_msg(stamp)
+    name = frame_id.encode() + b"\0"
+    body = bytearray(b"\x00\x01\x00\x00")  # CDR_LE encapsulation
+    body += np.array([t.sec], "<i4").tobytes() + np.array([t.nanosec, len(name)], "<u4").tobytes() + name
+    body += b"\0" * (-(len(body) - 4) % 4)
+    body += np.array([len(p)], "<u4").tobytes()
+    if len(p):
+        body += b"\0" * (-(len(body) - 4) % 8)
+    poses = np.zeros((len(p), 7), dtype="<f8")
+    poses[:, 0:2] = p[:, 0:2]
+    poses[:, 5] = np.sin(0.5 * p[:, 2])
+    poses[:, 6] = np.cos(0.5 * p[:, 2])
+    return bytes(body) + poses.tobytes()
+
+
+def transform_msg(pose, stamp, parent_frame: str, child_frame: str) -> TransformStamped | None:
+    """geometry_msgs/TransformStamped parent -> child for a planar pose; None if not finite."""
+    pose = _finite_pose(pose)
+    if pose is None:
+        return None
+    p = pose_msg(pose)
+    msg = TransformStamped()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = parent_frame
+    msg.child_frame_id = child_frame
+    msg.transform.translation.x = p.position.x
+    msg.transform.translation.y = p.position.y
+    msg.transform.translation.z = 0.0
+    msg.transform.rotation = p.orientation
+    return msg
+
+
+def map_to_odom(estimate_pose, odom_pose) -> np.ndarray:
+    """The map -> odom transform (REP-105) that makes map -> odom -> base_link equal the estimate:
+    ``estimate ⊕ inverse(odom pose)``, both poses taken at the same time."""
+    return compose(np.asarray(estimate_pose, dtype=float), inverse(np.asarray(odom_pose, dtype=float)))
+
+
+def health_msg(health: float) -> Float32 | None:
+    """std_msgs/Float32 of the filter health in [0, 1] (``/pf/health``); None when not finite."""
+    h = float(health)
+    if not np.isfinite(h):
+        return None
+    return Float32(data=min(max(h, 0.0), 1.0))
+
+
+def occupancy_grid_msg(occupancy_map: OccupancyMap, stamp=0.0, frame_id: str | None = None) -> OccupancyGrid:
+    """nav_msgs/OccupancyGrid of a map (what map_server would publish)."""
+    msg = OccupancyGrid()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id or occupancy_map.frame_id
+    msg.info.map_load_time = time_msg(stamp)
+    msg.info.resolution = float(occupancy_map.resolution)
+    msg.info.width = int(occupancy_map.width)
+    msg.info.height = int(occupancy_map.height)
+    msg.info.origin = pose_msg(occupancy_map.origin)
+    msg.data = array.array("b", np.ascontiguousarray(occupancy_map.data, dtype=np.int8).tobytes())
+    return msg

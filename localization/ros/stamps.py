@@ -1,0 +1,55 @@
+"""Stamps: float seconds in the core, ``builtin_interfaces/Time`` on the wire."""
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+
+import numpy as np
+from builtin_interfaces.msg import Time
+
+from localization.ros.conversions import sec_to_stamp_parts, stamp_to_sec
+
+INT32_MAX = 2**31 - 1  # builtin_interfaces/Time.sec is int32
+
+
+def time_msg(stamp) -> Time:
+    """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied), clamped
+    to what the type can carry (rclpy's Python messages accept values that cannot be serialized):
+    negative or non-finite times become 0, times beyond int32 seconds the latest stamp."""
+    if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
+        sec, nanosec = int(stamp.sec), min(max(int(stamp.nanosec), 0), 999_999_999)
+    else:
+        t = float(stamp)
+        sec, nanosec = sec_to_stamp_parts(t if np.isfinite(t) and t >= 0 else 0.0)
+    if sec < 0:
+        sec = 0
+    elif sec > INT32_MAX:
+        sec, nanosec = INT32_MAX, 999_999_999
+    return Time(sec=sec, nanosec=nanosec)
+
+
+class StampBook:
+    """Remembers the exact ``Time`` of recent input messages by their float-seconds value.
+
+    The core keeps stamps as float seconds, which cannot hold a 2022 epoch time to the
+    nanosecond; outputs are stamped with the exact input stamp when it is one of the last
+    ``size`` remembered, else with the rounded float."""
+
+    def __init__(self, size: int = 256):
+        self._size = size
+        self._book: OrderedDict[float, Time] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def remember(self, stamp) -> float:
+        t = stamp_to_sec(stamp)
+        with self._lock:
+            self._book[t] = time_msg(stamp)
+            self._book.move_to_end(t)
+            while len(self._book) > self._size:
+                self._book.popitem(last=False)
+        return t
+
+    def lookup(self, t: float) -> Time:
+        with self._lock:
+            exact = self._book.get(t)
+        return time_msg(exact if exact is not None else t)

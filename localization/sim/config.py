@@ -1,0 +1,65 @@
+"""What determines a simulated recording: ``SimConfig`` (its digest keys the caches), the bag's
+time base and the physics rate."""
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import asdict, dataclass, field
+
+from localization.sim.vehicle import CarModel, SimulationError
+
+__all__ = ["PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS", "CarModel", "SimConfig", "SimulationError"]
+
+#: Bag time of the first message (ns). The static transform and the initial pose are stamped
+#: here; simulated time 0 (the first /odom, /scan and /tf) is ``SENSOR_START_DELAY_NS`` later,
+#: so every player delivers them first.
+T0_NS = 1_700_000_000 * 1_000_000_000
+SENSOR_START_DELAY_NS = 1_000_000
+
+PHYSICS_RATE_HZ = 200  # 5 ms: a common multiple of the 40 Hz scan and 50 Hz odometry periods
+
+
+
+
+# ============================================================================================
+# Configuration
+# ============================================================================================
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that determines a simulated recording (and so its cache key)."""
+
+    map: str = "stata_basement"  # map name (in the maps dir) or YAML path
+    start: tuple = (-6.6, 20.5, -2.24)  # true start pose of base_link (x, y, yaw)
+    waypoints: tuple = ()  # route ((x, y), ...); the car drives from ``start`` through these
+    closed: bool = False  # route is a loop: keep driving until ``duration``
+    speed: float = 2.0  # cruise speed (m/s)
+    duration: float | None = None  # seconds; None: until the end of an open route
+    seed: int = 0
+    # odometry
+    odom_rate: float = 50.0
+    odom_noise: float = 0.0  # std of the Gaussian noise added to each of vx, vy (m/s) and ωz (rad/s)
+    speed_scale: float = 1.0  # reported vx = speed_scale · true vx (+ noise): e.g. 0.95 runs 5 % short
+    yaw_rate_bias: float = 0.0  # rad/s added to the reported ωz
+    # lidar
+    scan_rate: float = 40.0
+    num_beams: int = 1081
+    angle_min: float = -0.75 * math.pi  # -2.356 rad
+    angle_max: float = 0.75 * math.pi
+    range_min: float = 0.02
+    range_max: float = 10.0
+    range_noise: float = 0.01  # std (m) of the Gaussian range noise
+    # ground truth and initial pose
+    initial_pose: bool = True  # record /initialpose
+    initial_offset: tuple = (0.3, 0.4, 0.2)  # /initialpose = true start + this (map frame dx, dy, dyaw)
+    initial_std: tuple = (0.5, 0.2)  # std (m, rad) written into the /initialpose covariance
+    # robustness tests: teleport the car
+    kidnap_at: float | None = None  # seconds after the start
+    kidnap_to: tuple | None = None  # (x, y, yaw)
+    car: CarModel = field(default_factory=CarModel)
+
+    def key(self) -> str:
+        """Stable digest of the configuration (for caches)."""
+        text = repr(sorted(asdict(self).items()))
+        return hashlib.sha1(text.encode()).hexdigest()[:16]

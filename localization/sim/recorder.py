@@ -1,0 +1,157 @@
+"""A whole simulated recording (``simulate``) and writing it as a rosbag2 bag (``record``)."""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from localization.bags import (
+    BagWriter,
+    make_header,
+    make_laser_scan,
+    make_odometry,
+    make_tf_message,
+    make_transform_stamped,
+)
+from localization.core.geometry import wrap_angle, yaw_to_quaternion
+from localization.core.occupancy_map import OccupancyMap, load_map
+from localization.sim.config import PHYSICS_RATE_HZ, SENSOR_START_DELAY_NS, T0_NS, SimConfig, SimulationError
+from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory
+from localization.sim.trajectory import Trajectory, simulate_trajectory
+
+# ============================================================================================
+# The whole recording
+# ============================================================================================
+
+
+@dataclass
+class Recording:
+    cfg: SimConfig
+    trajectory: Trajectory
+    odometry: OdometryStream
+    scan_t: np.ndarray  # (S,) seconds
+    scan_ranges: np.ndarray  # (S, beams) float32
+    scan_angle_increment: float
+    truth_t: np.ndarray  # times of the /tf ground truth (every odom and scan stamp)
+    truth_poses: np.ndarray
+    initial_pose: np.ndarray | None  # what /initialpose says
+
+    @property
+    def duration(self) -> float:
+        return float(self.trajectory.t[-1])
+
+
+def simulate(cfg: SimConfig, occupancy_map: OccupancyMap | None = None) -> Recording:
+    """Run the simulation (no files written)."""
+    occupancy_map = occupancy_map if occupancy_map is not None else load_map(cfg.map)
+    if not occupancy_map.is_free(np.asarray(cfg.start[:2], dtype=float)):
+        raise SimulationError(f"start pose {tuple(cfg.start)} is not in free space of map {cfg.map}")
+    odom_rng, scan_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(cfg.seed).spawn(2))
+    traj = simulate_trajectory(cfg, occupancy_map)
+    odom = odometry_from_trajectory(traj, cfg, odom_rng)
+
+    per = PHYSICS_RATE_HZ / cfg.scan_rate
+    if abs(per - round(per)) > 1e-9:
+        raise SimulationError(f"scan_rate must divide {PHYSICS_RATE_HZ} Hz, got {cfg.scan_rate}")
+    scan_steps = np.arange(0, len(traj.t), int(round(per)))
+    lidar = Lidar(occupancy_map, cfg, scan_rng)
+    ranges = lidar.scan(traj.poses[scan_steps])
+
+    odom_steps = np.rint(odom.t * PHYSICS_RATE_HZ).astype(int)
+    truth_steps = np.union1d(scan_steps, odom_steps)
+    initial = None
+    if cfg.initial_pose:
+        initial = np.asarray(cfg.start, dtype=float) + np.asarray(cfg.initial_offset, dtype=float)
+        initial[2] = wrap_angle(initial[2])
+    return Recording(cfg, traj, odom, traj.t[scan_steps], ranges, lidar.angle_increment,
+                     traj.t[truth_steps], traj.poses[truth_steps], initial)
+
+
+# ============================================================================================
+# 6. Writing the bag
+# ============================================================================================
+
+
+def _ns(t: float) -> int:
+    return T0_NS + SENSOR_START_DELAY_NS + int(round(t * 1e9))
+
+
+def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = False) -> Path:
+    """Write the recording as a rosbag2 bag at ``path`` (a new directory)."""
+    cfg = rec.cfg
+    events = []  # (t_ns, order, topic, builder)
+    for k, t in enumerate(rec.odometry.t):
+        events.append((_ns(t), 1, "/odom", k))
+    for k, t in enumerate(rec.scan_t):
+        events.append((_ns(t), 2, "/scan", k))
+    for k, t in enumerate(rec.truth_t):
+        events.append((_ns(t), 0, "/tf", k))
+    events.sort(key=lambda e: (e[0], e[1]))
+
+    with BagWriter(path, storage=storage, overwrite=overwrite) as w:
+        ts = w.typestore
+        w.add_topic("/tf_static", "tf2_msgs/msg/TFMessage")
+        w.add_topic("/tf", "tf2_msgs/msg/TFMessage")
+        w.add_topic("/odom", "nav_msgs/msg/Odometry")
+        w.add_topic("/scan", "sensor_msgs/msg/LaserScan", qos="sensor_data")
+        w.write("/tf_static", T0_NS, make_tf_message(ts, [make_transform_stamped(
+            ts, T0_NS, "base_link", "laser", x=cfg.car.laser_offset_x)]))
+        x, y, th = rec.trajectory.poses[0]  # the car waits at its start pose until the sensors start
+        w.write("/tf", T0_NS, make_tf_message(ts, [make_transform_stamped(ts, T0_NS, "map", "base_link",
+                                                                          x=x, y=y, yaw=th)]))
+        if rec.initial_pose is not None:
+            w.add_topic("/initialpose", "geometry_msgs/msg/PoseWithCovarianceStamped")
+            w.write("/initialpose", T0_NS, make_pose_with_covariance(ts, T0_NS, "map", rec.initial_pose,
+                                                                      cfg.initial_std))
+        odom = rec.odometry
+        for t_ns, _, topic, k in events:
+            if topic == "/tf":
+                x, y, th = rec.truth_poses[k]
+                w.write("/tf", t_ns, make_tf_message(ts, [make_transform_stamped(ts, t_ns, "map", "base_link",
+                                                                                  x=x, y=y, yaw=th)]))
+            elif topic == "/odom":
+                (x, y, th), (vx, vy, wz) = odom.pose[k], odom.twist[k]
+                w.write("/odom", t_ns, make_odometry(ts, t_ns, "odom", "base_link", x, y, th, vx, vy, wz))
+            else:
+                w.write("/scan", t_ns, make_laser_scan(
+                    ts, t_ns, "laser", rec.scan_ranges[k], angle_min=cfg.angle_min, angle_max=cfg.angle_max,
+                    angle_increment=rec.scan_angle_increment, range_min=cfg.range_min, range_max=cfg.range_max,
+                    scan_time=1.0 / cfg.scan_rate))
+    return Path(path)
+
+
+def make_pose_with_covariance(typestore, t_ns: int, frame_id: str, pose, std=(0.5, 0.2)):
+    """``geometry_msgs/msg/PoseWithCovarianceStamped`` (what RViz's "2D Pose Estimate" sends)."""
+    T = typestore.types
+    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(float(pose[2])))
+    cov = np.zeros(36)
+    cov[0] = cov[7] = float(std[0]) ** 2
+    cov[35] = float(std[1]) ** 2
+    p = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(pose[0]), y=float(pose[1]), z=0.0),
+                                    orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+    return T["geometry_msgs/msg/PoseWithCovarianceStamped"](
+        header=make_header(typestore, t_ns, frame_id),
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=cov))
+
+
+def record(cfg: SimConfig, path, storage: str = "sqlite3", overwrite: bool = False,
+           occupancy_map: OccupancyMap | None = None) -> Recording:
+    """Simulate and write the bag; returns the recording (truth, odometry, scans)."""
+    rec = simulate(cfg, occupancy_map)
+    write_bag(rec, path, storage, overwrite)
+    return rec
+
+
+def code_version() -> str:
+    """Digest of the code that determines a recording's content (for caches)."""
+    h = hashlib.sha1()
+    package = Path(__file__).resolve().parents[1]
+    for name in ("sim/config.py", "sim/vehicle.py", "sim/trajectory.py", "sim/sensors.py", "sim/recorder.py",
+                 "core/raycast/exact.py", "core/geometry.py", "bags/writer.py"):
+        try:
+            h.update((package / name).read_bytes())
+        except OSError:
+            pass
+    return h.hexdigest()[:12]

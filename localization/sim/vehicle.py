@@ -1,0 +1,159 @@
+"""The simulated car: Ackermann kinematics (``CarModel``) and a pure-pursuit route follower."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.geometry import compose, integrate_twist, wrap_angle
+
+
+class SimulationError(RuntimeError):
+    """The simulation cannot run as configured (bad route, car hits a wall, ...)."""
+
+# ============================================================================================
+# 1. Ackermann kinematics
+# ============================================================================================
+
+
+@dataclass(frozen=True)
+class CarModel:
+    """Kinematic bicycle model of the MIT RACECAR, reference point the rear axle centre.
+
+    State (x, y, θ) and speed v; the input is the front-wheel steering angle δ::
+
+        ẋ = v cos θ
+        ẏ = v sin θ
+        θ̇ = v tan(δ) / L                  L = wheelbase
+
+    With v and δ constant over a step dt the car drives an arc of curvature κ = tan(δ)/L,
+    integrated exactly (``step``). Commands are limited like the real car: |v| ≤ max_speed,
+    |δ| ≤ max_steer, |dv/dt| ≤ max_accel, |dδ/dt| ≤ max_steer_rate.
+    """
+
+    wheelbase: float = 0.325  # m
+    max_speed: float = 4.0  # m/s
+    max_steer: float = 0.34  # rad
+    max_accel: float = 3.0  # m/s²
+    max_steer_rate: float = 3.2  # rad/s
+    laser_offset_x: float = 0.275  # lidar ahead of the rear axle (m)
+    radius: float = 0.18  # collision circles of this radius at the rear and front axle (m)
+
+    def yaw_rate(self, v: float, steer: float) -> float:
+        """θ̇ = v tan(δ) / L."""
+        return v * math.tan(steer) / self.wheelbase
+
+    def limit(self, v: float, steer: float, v_cmd: float, steer_cmd: float, dt: float) -> tuple[float, float]:
+        """Apply the speed, steering, acceleration and steering-rate limits to a command."""
+        v_cmd = float(np.clip(v_cmd, -self.max_speed, self.max_speed))
+        steer_cmd = float(np.clip(steer_cmd, -self.max_steer, self.max_steer))
+        v_new = v + float(np.clip(v_cmd - v, -self.max_accel * dt, self.max_accel * dt))
+        steer_new = steer + float(np.clip(steer_cmd - steer, -self.max_steer_rate * dt, self.max_steer_rate * dt))
+        return v_new, steer_new
+
+    def step(self, pose, v: float, steer: float, dt: float) -> np.ndarray:
+        """Pose after driving (v, δ) for dt: the constant-twist arc (v, 0, v tan δ / L) from pose
+        (``geometry.integrate_twist``)."""
+        return compose(pose, integrate_twist(v, 0.0, self.yaw_rate(v, steer), dt))
+
+    def footprint_points(self, pose) -> np.ndarray:
+        """Centres (2, 2) of the collision circles: rear axle and front axle."""
+        x, y, th = pose
+        return np.array([[x, y], [x + self.wheelbase * math.cos(th), y + self.wheelbase * math.sin(th)]])
+
+
+# ============================================================================================
+# 2. Pure pursuit route follower
+# ============================================================================================
+
+
+def densify(waypoints, spacing: float = 0.05, closed: bool = False) -> np.ndarray:
+    """Points every ``spacing`` metres along the polyline through ``waypoints`` (closed: back
+    to the first)."""
+    pts = np.asarray(waypoints, dtype=float).reshape(-1, 2)
+    if closed:
+        pts = np.vstack([pts, pts[:1]])
+    out = [pts[:1]]
+    for a, b in zip(pts[:-1], pts[1:]):
+        n = max(1, int(math.ceil(np.hypot(*(b - a)) / spacing)))
+        out.append(a + (b - a) * (np.arange(1, n + 1)[:, None] / n))
+    path = np.vstack(out)
+    if closed:
+        path = path[:-1]  # the last point is the first again
+    return path
+
+
+class RouteFollower:
+    """Pure pursuit (Coulter 1992) along a waypoint route.
+
+    Each step: find the path point nearest to the rear axle (searching a little ahead of the
+    last one, so the car never skips a loop), take the goal point ``Ld`` further along the
+    path, and steer onto the circle through the rear axle and the goal::
+
+        Ld = lookahead_min + lookahead_gain · v
+        α  = atan2(goal_y − y, goal_x − x) − θ          (goal bearing in the car frame)
+        δ  = atan(2 L sin(α) / Ld)
+
+    Speed: ``speed`` on straights, reduced in turns and to a stop at the end of an open route::
+
+        v_cmd = speed · (1 − turn_slowdown · |δ| / max_steer)
+        v_cmd = min(v_cmd, sqrt(2 · a_max · distance_to_end))
+    """
+
+    def __init__(self, waypoints, closed: bool = False, lookahead_min: float = 0.9, lookahead_gain: float = 0.3,
+                 turn_slowdown: float = 0.5, spacing: float = 0.05):
+        pts = np.asarray(waypoints, dtype=float).reshape(-1, 2)
+        if len(pts) < 2:
+            raise SimulationError("a route needs at least two waypoints")
+        self.closed = bool(closed)
+        self.path = densify(pts, spacing, self.closed)
+        seg = np.hypot(*np.diff(self.path, axis=0, append=self.path[:1] if self.closed else self.path[-1:]).T)
+        self.s = np.concatenate([[0.0], np.cumsum(seg)])[:len(self.path)]  # arc length of each point
+        self.length = float(self.s[-1] + (seg[-1] if self.closed else 0.0))
+        self.spacing = spacing
+        self.lookahead_min = lookahead_min
+        self.lookahead_gain = lookahead_gain
+        self.turn_slowdown = turn_slowdown
+        self.index = 0
+        self.travelled = 0.0  # arc length progressed along the route (grows past ``length`` on loops)
+
+    def reset_to_nearest(self, xy) -> None:
+        """Continue from the route point nearest to ``xy`` (start, or after a kidnapping)."""
+        self.index = int(np.argmin(np.hypot(*(self.path - np.asarray(xy, dtype=float)[:2]).T)))
+
+    def _nearest_ahead(self, xy, window_m: float = 3.0) -> int:
+        n = len(self.path)
+        k = np.arange(self.index, self.index + int(window_m / self.spacing) + 1)
+        k = k % n if self.closed else k[k < n]
+        return int(k[np.argmin(np.hypot(*(self.path[k] - xy).T))])
+
+    def _point_ahead(self, index: int, distance: float) -> tuple[np.ndarray, float]:
+        """The path point ``distance`` metres after ``index`` (clamped at the end of an open
+        route) and the distance actually available."""
+        steps = int(round(distance / self.spacing))
+        if self.closed:
+            return self.path[(index + steps) % len(self.path)], distance
+        j = min(index + steps, len(self.path) - 1)
+        return self.path[j], self.s[j] - self.s[index]
+
+    def distance_to_end(self) -> float:
+        return math.inf if self.closed else float(self.s[-1] - self.s[self.index])
+
+    def control(self, pose, v: float, car: CarModel, speed: float) -> tuple[float, float]:
+        """(v_cmd, δ_cmd) for the current pose and speed."""
+        x, y, th = pose
+        new = self._nearest_ahead(np.array([x, y]))
+        step = (new - self.index) % len(self.path) if self.closed else new - self.index
+        self.travelled += step * self.spacing
+        self.index = new
+        ld = self.lookahead_min + self.lookahead_gain * abs(v)
+        goal, _ = self._point_ahead(self.index, ld)
+        alpha = wrap_angle(math.atan2(goal[1] - y, goal[0] - x) - th)
+        dist = max(math.hypot(goal[0] - x, goal[1] - y), 1e-6)
+        steer = math.atan2(2.0 * car.wheelbase * math.sin(alpha), dist)
+        steer = float(np.clip(steer, -car.max_steer, car.max_steer))
+        v_cmd = speed * (1.0 - self.turn_slowdown * abs(steer) / car.max_steer)
+        if not self.closed:
+            v_cmd = min(v_cmd, math.sqrt(2.0 * car.max_accel * 0.5 * max(self.distance_to_end() - 0.05, 0.0)))
+        return v_cmd, steer
