@@ -231,7 +231,7 @@ class OccupancyMap:
 
     def near_obstacle(self, radius: float) -> np.ndarray:
         """Per-cell: is the centre of an occupied cell within ``radius`` metres of this cell's
-        centre? (``distance_to_obstacle() <= radius``, by a dilation: ~20x faster and 8x smaller.)"""
+        centre? (``distance_to_obstacle() <= radius``, computed by a binary dilation: cheaper than the EDT.)"""
         def compute():
             from scipy.ndimage import binary_dilation
             reach = int(math.floor(radius / self.resolution + 1e-9))
