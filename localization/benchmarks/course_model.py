@@ -24,7 +24,7 @@ def measure(map_name: str = "stata_basement", reps: int = 30, seed: int = 0) -> 
     import numpy as np
 
     from localization.core.occupancy_map import load_map
-    from localization.sensor_model import SensorModel
+    from localization.core.sensors.beam import BeamModel as SensorModel  # what localization.sensor_model exports
 
     occupancy_map = load_map(map_name)
     rng = np.random.default_rng(seed)
