@@ -14,6 +14,7 @@ setup(
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.py")),
+        (f"share/{PACKAGE}/rviz", glob("rviz/*.rviz")),
         (f"share/{PACKAGE}/maps", glob("maps/*.yaml") + glob("maps/*.png") + ["maps/README.md"]),
     ],
     install_requires=["setuptools"],
@@ -25,10 +26,13 @@ setup(
     entry_points={
         "console_scripts": [
             "particle_filter = localization.particle_filter:main",
+            "particle_filter_lifecycle = localization.ros.lifecycle_node:main",
             "localization-play = localization.tools.play:main",
             "localization-simulate = localization.tools.simulate:main",
             "localization-replay = localization.tools.replay:main",
             "localization-demo = localization.tools.demo:main",
+            "localization-calibrate = localization.tools.calibrate:main",
+            "localization-tune = localization.tools.tune:main",
         ],
     },
 )

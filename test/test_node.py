@@ -451,12 +451,18 @@ def test_bad_parameter_type_is_refused_and_int_for_float_is_accepted():
     proc = subprocess.Popen([sys.executable, "-m", "localization.particle_filter", "--ros-args",
                              "-p", "laser_offset_x:=0", "-p", "random_seed:=3"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+    lines = []
     try:
-        time.sleep(1.5)
-        assert proc.poll() is None, proc.communicate()[0]
+        deadline = time.monotonic() + 60.0  # the imports alone take seconds on a loaded machine
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            lines.append(line)
+            if not line or "particle filter ready" in line:
+                break
+        assert proc.poll() is None, "".join(lines) + proc.communicate()[0]
     finally:
         proc.send_signal(signal.SIGINT)
-        out = proc.communicate(timeout=10)[0]
+        out = "".join(lines) + proc.communicate(timeout=10)[0]
     assert proc.returncode == 0, out
     assert "particle filter ready" in out
 

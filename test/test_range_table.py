@@ -331,3 +331,7 @@ def test_bench_quick_json_prints_the_keys(tmp_path):
     assert set(result["fast_vs_exact"]) >= {"median_abs_cells", "p95_abs_cells"}
     assert result["init_cold"]["table_from_cache"] is False and result["init_cached"]["table_from_cache"] is True
     assert not (tmp_path / "user-cache").exists()  # the benchmark keeps its tables to itself
+    big = result["large_map"]  # the 3 x 3 tiled basement, in the same run
+    assert big["cells"] >= 20_000_000 and big["caster"] == "TiledLookupTableRayCaster"
+    for key in ("init_cold_s", "init_cached_s", "peak_rss_mb", "ct_mean_m", "single_ct_mean_m"):
+        assert isinstance(big[key], float) and 0 < big[key] < 1e4

@@ -201,7 +201,8 @@ def test_unreadable_bag(tmp_path, capsys):
 
 def test_missing_topic_names_the_alternatives(tmp_path, capsys):
     bag = real_bag_path("bag3")
-    assert R.main([str(bag), "--map", "basement_fixed", "--out", str(tmp_path / "o")]) == 1
+    # the simulator's parameters on a car bag (without --params the car's are used: test_replay_interface.py)
+    assert R.main([str(bag), "--map", "basement_fixed", "--params", "params", "--out", str(tmp_path / "o")]) == 1
     err = _error_line(capsys)
     assert "odometry topic /odom not in bag" in err and "/vesc/odom" in err and "--odom-topic" in err
     assert R.main([str(bag), "--map", "basement_fixed", "--odom-topic", "/vesc/odom", "--scan-topic", "/laser"]) == 1

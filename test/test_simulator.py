@@ -51,9 +51,10 @@ def test_arc_matches_numerical_integration():
 
 def test_minimum_turning_radius_and_limits():
     car = S.CarModel()
-    assert car.wheelbase == 0.325 and car.max_speed == 4.0 and car.max_steer == 0.34 and car.laser_offset_x == 0.275
+    assert car.wheelbase == 0.325 and car.max_speed == 8.0 and car.max_steer == 0.34
+    assert S.SimConfig().laser_offset == (0.275, 0.0, 0.0)
     v, steer = car.limit(0.0, 0.0, 10.0, 1.0, dt=10.0)  # huge dt: only the absolute limits bind
-    assert v == 4.0 and steer == 0.34
+    assert v == 8.0 and steer == 0.34
     v, steer = car.limit(0.0, 0.0, 10.0, 1.0, dt=0.005)
     assert v == pytest.approx(car.max_accel * 0.005) and steer == pytest.approx(car.max_steer_rate * 0.005)
     radius = v / car.yaw_rate(v, 0.34)

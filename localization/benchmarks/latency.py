@@ -14,9 +14,13 @@ just before it is published, so
     latency = (wall time the pose on /pf/pose/odom with that scan's stamp is received) − stamp
 
 covers DDS both ways, queueing in the node, the sensor update and the pose/particles/TF output.
-Prints median / p95 / max latency, how many scans produced a pose, the odometry → pose latency
-too, and the node's peak memory (VmHWM). A node that cannot keep up shows a latency growing
-through the run (compare the first and second half) and scans without a pose.
+Prints median / p95 / max latency, the fraction of scans that produced a sensor update and a
+pose (the target: every scan), the odometry → pose latency too, the node's peak memory (VmHWM),
+and where the time went inside the node, read from its shutdown log line (``scan -> pose: total,
+wait, deserialize, convert, update, publish`` median/p95 in ms: queued for the sensor-update
+thread, CDR bytes → LaserScan, message → ScanData, sensor update + resampling, outputs; see
+``core.watchdog.Watchdog.run_summary``). A node that cannot keep up shows a latency growing through
+the run (compare the first and second half) and scans without a pose.
 
 ROS discovery is kept on this host (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in a random
 ``ROS_DOMAIN_ID`` unless one is set, so concurrent test runs do not cross-talk.
@@ -247,11 +251,15 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
             odoms_sent.pop(stamp)
     if not scan_lat:
         return {**result, "error": f"no pose came back for any scan; node log: {log.name}"}
+    node_log = Path(log.name).read_text(errors="replace")
+    breakdown = [line.split("scan -> pose: ", 1)[1].strip() for line in node_log.splitlines()
+                 if "scan -> pose: " in line]
+    result["node_breakdown"] = breakdown[-1] if breakdown else None
     lat, when = np.asarray(scan_lat), np.asarray(scan_when)
     half = when < np.median(when)
     result.update(
         duration_s=duration, scans_sent=len(scan_lat) + len(scans_sent), poses_from_scans=len(scan_lat),
-        scans_skipped=len(scans_sent),
+        scans_skipped=len(scans_sent), processed_fraction=len(scan_lat) / max(1, len(scan_lat) + len(scans_sent)),
         latency_ms_median=float(np.median(lat)), latency_ms_p95=float(np.percentile(lat, 95)),
         latency_ms_max=float(lat.max()),
         latency_ms_median_first_half=float(np.median(lat[half])) if half.any() else None,
@@ -271,7 +279,8 @@ def format_latency(lat: dict) -> str:
             f"scan stamp -> published pose median {lat['latency_ms_median']:.1f} ms, "
             f"p95 {lat['latency_ms_p95']:.1f} ms, "
             f"max {lat['latency_ms_max']:.1f} ms; {lat['poses_from_scans']} of {lat['scans_sent']} scans produced a "
-            f"pose ({lat['scans_skipped']} replaced by a newer scan before their turn, or lost)")
+            f"sensor update and a pose ({100 * lat['processed_fraction']:.1f} %; {lat['scans_skipped']} dropped or "
+            "lost)")
 
 
 def format_result(r: dict) -> str:
@@ -282,7 +291,11 @@ def format_result(r: dict) -> str:
                  f"{r['odom_latency_ms_median']:.1f} ms, p95 {r['odom_latency_ms_p95']:.1f} ms over "
                  f"{r['odom_poses']} messages\n  node peak RSS {r['node_peak_rss_mb']:.0f} MB; ready "
                  f"{r['node_ready_s']:.1f} s after start; load average {r['load_average_start']:.1f} -> "
-                 f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}")
+                 f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}"
+                 f"\n  where the time went inside the node (scan received -> pose published; wait = queued for "
+                 f"the sensor-update thread, deserialize = CDR -> LaserScan, convert = message -> ScanData, "
+                 f"update = sensor update + resampling, "
+                 f"publish = pose, cloud, health, TF):\n    {r.get('node_breakdown') or 'not reported'}")
     return text
 
 

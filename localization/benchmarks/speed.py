@@ -24,6 +24,12 @@ timed update: the worst case for memory access (a converged cloud is faster).
 few repetitions: its numbers are not the benchmark). ``--latency`` adds (or, with
 ``--latency-only``, runs only) the end-to-end latency of the live ROS node: a 40 Hz scan + 50 Hz
 odometry stream replayed into ``particle_filter`` at real time (see ``benchmarks.latency``).
+It also prints both sensor models (beam, likelihood field) and adaptive vs fixed particle
+counts (``benchmarks.sensor_speed``, JSON keys ``likelihood_field``, ``adaptive``), and the sensor
+update with scan deskew on vs off (``benchmarks.deskew_speed``, JSON key ``deskew``).
+The default run also prints the large-map figures (the Stata basement tiled 3 × 3: init cold and
+cached, peak memory, accuracy; ``localization.benchmarks.large_map``, JSON key ``large_map``,
+~1-2 min); ``--no-large-map`` skips them, ``--large-map-only`` runs only them.
 
 Timings on a shared VM vary up to 2x run to run: compare numbers from one run.
 """
@@ -261,6 +267,12 @@ def run(map_name="stata_basement", theta_bins=None, quick=False, seed=0, progres
         finish["workloads"].append({"particles": n, "beams": b, "sensor_update_ms_median": _stats(update_t)[0]})
     sensor_model.set_map(occupancy_map, ray_caster=caster)
     result["exact_finish"] = finish
+    say("sensor models and adaptive particle counts ...")
+    from localization.benchmarks.sensor_speed import bench_models
+    result.update(bench_models(occupancy_map, exact, params, quick, rng, _full_scan))
+    say("scan deskew ...")  # issue 10: the sensor update with per-beam laser offsets vs without
+    from localization.benchmarks.deskew_speed import bench_deskew
+    result.update(bench_deskew(sensor_model, occupancy_map, exact, params, quick, rng))
     result["bench_peak_rss_mb"] = _rss_peak_mb()
     result["load_average_end"] = os.getloadavg()[0]
     return result
@@ -323,8 +335,17 @@ def format_report(r: dict) -> str:
     verdicts.append(f"  (this benchmark process peaked at {r['bench_peak_rss_mb']:.0f} MB: the exact caster's "
                     "temporaries)")
     lines += ["targets:"] + verdicts
+    if "likelihood_field" in r:  # sensor models, adaptive vs fixed counts (benchmarks.sensor_speed)
+        from localization.benchmarks.sensor_speed import format_models
+        lines += [""] + format_models(r)
+    if "deskew" in r:  # benchmarks.deskew_speed
+        from localization.benchmarks.deskew_speed import format_deskew
+        lines += [""] + format_deskew(r)
     if "latency" in r:
         lines += ["", format_latency(r["latency"])]
+    if "large_map" in r:
+        from localization.benchmarks.large_map import format_report as format_large_map
+        lines += ["", format_large_map(r["large_map"])]
     return "\n".join(lines)
 
 
@@ -343,8 +364,13 @@ def to_json(r: dict) -> dict:
         "load_average": [r["load_average_start"], r["load_average_end"]],
         "init_cold": r["init_cold"], "init_cached": r["init_cached"], "bench_peak_rss_mb": r["bench_peak_rss_mb"],
     }
+    for key in ("likelihood_field", "adaptive", "deskew"):  # benchmarks.sensor_speed, benchmarks.deskew_speed
+        if key in r:
+            out[key] = r[key]
     if "latency" in r:
         out["latency"] = r["latency"]
+    if "large_map" in r:
+        out["large_map"] = r["large_map"]
     return out
 
 
@@ -360,6 +386,8 @@ def main(argv=None) -> int:
     ap.add_argument("--latency-only", action="store_true", help="only measure the live node's latency")
     ap.add_argument("--latency-particles", type=int, default=4000)
     ap.add_argument("--latency-duration", type=float, default=20.0, help="seconds of replayed stream")
+    ap.add_argument("--no-large-map", action="store_true", help="skip the large-map figures (3 x 3 tiled basement)")
+    ap.add_argument("--large-map-only", action="store_true", help="only the large-map figures")
     ap.add_argument("--probe-init", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--probe-particles", type=int, default=4000, help=argparse.SUPPRESS)
     ap.add_argument("--probe-beams", type=int, default=60, help=argparse.SUPPRESS)
@@ -375,10 +403,17 @@ def main(argv=None) -> int:
         lat = measure_latency(particles=args.latency_particles, duration=args.latency_duration, progress=progress)
         print(json.dumps(lat) if args.json else format_latency(lat))
         return 0
+    from localization.benchmarks import large_map
+    if args.large_map_only:
+        big = large_map.run(drive_s=5.0 if args.quick else 20.0, progress=progress)
+        print(json.dumps({"large_map": big}) if args.json else large_map.format_report(big))
+        return 0
     result = run(args.map, args.bins, args.quick, args.seed, progress)
     if args.latency:
         result["latency"] = measure_latency(particles=args.latency_particles, duration=args.latency_duration,
                                             progress=progress)
+    if not args.no_large_map:
+        result["large_map"] = large_map.run(drive_s=5.0 if args.quick else 20.0, progress=progress)
     print(json.dumps(to_json(result)) if args.json else format_report(result))
     return 0
 

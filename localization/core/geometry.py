@@ -68,6 +68,17 @@ def integrate_twist(vx: float, vy: float, wz: float, dt: float) -> np.ndarray:
     return np.array([vx * a - vy * b, vx * b + vy * a, dth])
 
 
+def integrate_twists(vx, vy, wz, dt) -> np.ndarray:
+    """``integrate_twist`` for arrays (broadcast): displacements of shape (..., 3)."""
+    vx, vy, wz, dt = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (vx, vy, wz, dt)))
+    dth = wz * dt
+    small = np.abs(dth) < 1e-6
+    w = np.where(small, 1.0, wz)
+    a = np.where(small, dt * (1.0 - dth * dth / 6.0), np.sin(dth) / w)  # sin(dθ)/ωz
+    b = np.where(small, dt * 0.5 * dth, (1.0 - np.cos(dth)) / w)  # (1 − cos dθ)/ωz
+    return np.stack([vx * a - vy * b, vx * b + vy * a, dth], axis=-1)
+
+
 def yaw_to_quaternion(yaw):
     """Quaternion ``(x, y, z, w)`` of a rotation by ``yaw`` about z."""
     half = 0.5 * np.asarray(yaw, dtype=float)

@@ -39,9 +39,10 @@ class AgreementScorer:
     """Scan–map agreement of scans against one map (caches the distance field)."""
 
     def __init__(self, occupancy_map: OccupancyMap, laser_offset=(0.0, 0.0, 0.0),
-                 tolerance: float = AGREEMENT_TOLERANCE_M):
+                 tolerance: float = AGREEMENT_TOLERANCE_M, range_scale: float = 1.0):
         self.map = occupancy_map
         self.laser_offset = np.asarray(laser_offset, dtype=float).reshape(3)
+        self.range_scale = float(range_scale)  # lidar metres -> map metres (lidar_scale_to_map_scale)
         self.tolerance = float(tolerance)
         # cell-centre distances, so "within tolerance" of a wall means within tolerance + half a cell
         self.near = occupancy_map.near_obstacle(self.tolerance + 0.5 * occupancy_map.resolution)
@@ -56,7 +57,8 @@ class AgreementScorer:
             valid = np.isfinite(r) & (r >= range_min) & (r < range_max)
         laser = compose(np.asarray(base_pose, dtype=float), self.laser_offset)
         th = laser[2] + a[valid]
-        return np.column_stack([laser[0] + r[valid] * np.cos(th), laser[1] + r[valid] * np.sin(th)])
+        r = r[valid] * self.range_scale
+        return np.column_stack([laser[0] + r * np.cos(th), laser[1] + r * np.sin(th)])
 
     def score(self, base_pose, ranges, angles, range_min: float, range_max: float) -> float:
         """Fraction of valid beams ending within ``tolerance`` of an occupied cell (NaN: none valid)."""

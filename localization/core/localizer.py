@@ -3,21 +3,33 @@
 It owns the map, the models and the particle filter, and turns a stream of
 (odometry twist, stamp) and (scan, stamp) into pose estimates:
 
-- odometry: dt from consecutive *message stamps* (never the wall clock), so bags replay right at
-  any rate; the twist (vx, vy, ωz) is integrated over dt along a constant-twist arc and applied
-  to every particle. A stamp going backwards or a gap longer than ``max_odom_gap`` resets the
-  reference instead of moving particles;
-- scan: downsampled, then a sensor update (+ resampling) once the car has moved
-  ``update_min_distance`` / ``update_min_angle`` since the last one (always right after an
-  initialisation, so a parked car's cloud still tightens once);
+- odometry: kept in a short history on the scan's clock (``core.odometry.OdometryBuffer``: stamps
+  shifted by ``odom_time_offset``, twist corrected by the speed / yaw-rate scales and bias); the
+  twist of message k holds from the previous *message stamp* to its own (never the wall clock,
+  so bags replay right at any rate) and the particles are moved through it, one constant-twist
+  arc per odometry period (motion noise per period). A stamp going backwards or a gap longer
+  than ``odom_max_gap`` resets the reference instead of moving particles;
+- scan (``align_odometry``): the particles are moved to the scan's own time t_s (its stamp, or
+  the middle of its sweep when ``time_increment`` > 0) through the odometry history, the last
+  twist extrapolated when the scan is newer than the newest odometry, or moved back (exactly,
+  no noise) when odometry newer than the scan has been applied already. Then, once the car has
+  moved ``update_min_distance`` / ``update_min_angle`` since the last update (always right after
+  an initialisation, and once where the car comes to a stop: below ``STANDING_SPEED`` and
+  ``STANDING_YAW_RATE``), the downsampled scan updates the filter (+ resampling) there — each beam
+  cast from the laser pose at its own time with ``deskew`` — the estimate is stamped t_s, and the
+  odometry newer than t_s is applied again after the update;
+- what the node publishes on each odometry message (``on_odometry``, ``estimate``): the latest
+  sensor-corrected estimate carried forward with the odometry received since, to the odometry
+  message's stamp (a controller always gets a current pose);
 - nothing happens before a map and an initial pose (or a global initialisation) have arrived;
 - health and recovery (``localization.health``): after each sensor update of a converged cloud the
   estimate is scored against the scan (``health``); a lost filter is re-spread over the free space
   with ``global_num_particles``, which shrink back to ``num_particles`` once the cloud converges.
 
 Thread safety: the node may call ``on_odometry`` while ``on_scan`` runs. Odometry that arrives
-during a sensor update is queued and applied before the next update, and the returned estimate
-is the last one composed with the queued motion, so odometry never waits for a slow scan.
+during a sensor update only goes into the history (its own small lock) and is applied to the
+particles by the next call that holds the filter lock; the returned estimate is the last one
+carried forward through the history, so odometry never waits for a slow scan.
 """
 from __future__ import annotations
 
@@ -29,15 +41,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
+from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
-from localization.core.geometry import compose, integrate_twist
+from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.motion import MotionModel, MotionNoiseParams
 from localization.core.occupancy_map import MapError, OccupancyMap
-from localization.core.odometry import TwistData
+from localization.core.odometry import OdometryBuffer, TwistData
 from localization.core.parameters import Parameters
-from localization.core.scan import ScanData, downsample_scan
+from localization.core.scan import ScanData, downsample_indices, downsample_scan
 from localization.core.sensors.beam import BeamModel, BeamModelParams
+from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
+
+MAX_SWEEP_S = 0.5  # s: a scan whose beams span longer (time_increment × beams) has no usable sweep timing
+STANDING_SPEED, STANDING_YAW_RATE = 0.05, 0.05  # m/s, rad/s: below both the car has stopped (one more update)
 
 
 @dataclass
@@ -51,9 +69,13 @@ def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
     """The particle filter and its models, configured from parameters (the table's names)."""
     rng = rng if rng is not None else np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
     motion = MotionModel(params.deterministic, rng, MotionNoiseParams.from_parameters(params))
-    sensor = BeamModel(BeamModelParams.from_parameters(params))
+    if params.sensor_model == "likelihood_field":
+        sensor = LikelihoodFieldModel(LikelihoodFieldParams.from_parameters(params))
+    else:
+        sensor = BeamModel(BeamModelParams.from_parameters(params))
+    kld = KLDSampler.from_parameters(params) if params.adaptive_particles else None
     return MonteCarloLocalizer(motion, sensor, params.num_particles, params.resample_ess_fraction,
-                               (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng)
+                               (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng, kld)
 
 
 class ThrottledLog:
@@ -83,19 +105,27 @@ class Localizer:
         self.filter = build_filter(self.params)
         self.map: OccupancyMap | None = None
         self._lock = threading.Lock()
-        self._pending = np.zeros(3)  # odometry received during a sensor update
-        self._pending_stamp = -math.inf
-        self._pending_lock = threading.Lock()
+        p = self.params
+        self._odom = OdometryBuffer(p.odom_time_offset, p.odom_speed_scale, p.odom_yaw_rate_scale,
+                                    p.odom_yaw_rate_bias)
+        self._odom_lock = threading.Lock()  # guards _odom and _odom_now (on_odometry runs during on_scan)
+        self._odom_now: float | None = None  # stamp of the newest odometry message in the history
+        self._t_filter: float | None = None  # the time (scan clock) the particles describe
+        self._estimate_t: float | None = None  # the time _estimate's pose describes
+        self._inits = 0  # (re-)initialisations of the cloud
         self._last_odom_stamp: float | None = None
         self._odom_before_jump: float | None = None  # the reference before a stamp jump (one bad stamp?)
         self._since_update = np.zeros(2)  # distance, angle travelled since the last sensor update
         self._force_update = False
+        self._stop_updated = False  # a sensor update happened since the car stopped
         self._estimate: PoseEstimate | None = None
         self._impossible_scans = 0
         self.health_monitor = HealthMonitor.from_params(self.params)
         self._scorer: AgreementScorer | None = None
         self.global_mode = False  # particles spread globally (start, service or recovery), not yet converged
+        self._seed_pending = False  # global_init scan: the next scan seeds the global spread
         self.recoveries = 0  # re-spreads after the filter was judged lost (or every particle impossible)
+        self.map_pending = False  # a map arrived and its ray caster is being prepared (prepare_ray_caster)
 
     # ------------------------------------------------------------------ state
     @property
@@ -114,26 +144,60 @@ class Localizer:
 
     @property
     def estimate(self) -> PoseEstimate | None:
-        """The latest estimate, including odometry queued during a running sensor update."""
-        est = self._estimate
-        if est is None:
-            return None
-        with self._pending_lock:
-            pending, pending_stamp = self._pending.copy(), self._pending_stamp
-        if pending.any():
-            return PoseEstimate(max(est.stamp, pending_stamp), compose(est.pose, pending), est.covariance)
-        return est
+        """The latest sensor-corrected estimate carried forward with the odometry received since,
+        to the newest odometry message's stamp (what the node publishes on each odometry message)."""
+        with self._odom_lock:  # one consistent snapshot (on_scan may be replacing the estimate)
+            est, est_t, now = self._estimate, self._estimate_t, self._odom_now
+        if est is None or est_t is None or now is None:
+            return est
+        return self._carried(est, est_t, now)
+
+    def estimate_at(self, t: float) -> PoseEstimate | None:
+        """The latest sensor-corrected estimate moved through the odometry history to time t,
+        backwards too (e.g. the pose when a scan was taken, ``scan_time``: what to score it with)."""
+        with self._odom_lock:
+            est, est_t = self._estimate, self._estimate_t
+        if est is None or est_t is None or not math.isfinite(t):
+            return est
+        with self._odom_lock:
+            t_from = self._history_time(est_t)
+            if t_from is None:
+                return est
+            delta = self._odom.motion(t_from, t)
+        return PoseEstimate(t, compose(est.pose, delta), est.covariance)
+
+    def _carried(self, est: PoseEstimate, est_t: float, t: float) -> PoseEstimate:
+        """``est`` (describing time est_t) moved forward to time t through the odometry history."""
+        with self._odom_lock:
+            t_from = self._history_time(est_t)
+            if t_from is None or not t > t_from:
+                return est
+            delta = self._odom.motion(t_from, t)
+        return PoseEstimate(t, compose(est.pose, delta), est.covariance)
+
+    def _history_time(self, t: float | None) -> float | None:
+        """t if the odometry history can move the particles from it; after a clock jump (t far
+        outside the history) the history's start: the motion across the jump is lost (odom lock held)."""
+        oldest, latest, gap = self._odom.oldest, self._odom.latest, self.params.odom_max_gap
+        if oldest is None:
+            return t
+        if t is None or t < oldest - gap or t > latest + gap:
+            return oldest
+        return t
 
     # ------------------------------------------------------------------ inputs
-    def set_map(self, occupancy_map: OccupancyMap) -> None:
+    def set_map(self, occupancy_map: OccupancyMap, ray_caster=None) -> None:
         """Use a (new) map. Particles are kept if they stay valid, else re-initialised.
-        A map without free space raises MapError and the previous map stays in use."""
+        A map without free space raises MapError and the previous map stays in use.
+        ``ray_caster``: one made beforehand by ``prepare_ray_caster`` (e.g. off the callback thread)."""
         if len(occupancy_map.free_cells) == 0:
             raise MapError("map has no free cell (all unknown or occupied): ignored")
         with self._lock:
-            self.filter.sensor_model.set_map(occupancy_map)
+            self.filter.sensor_model.set_map(occupancy_map, ray_caster)
+            self.map_pending = False
             self.map = occupancy_map
-            self._scorer = AgreementScorer(occupancy_map, self.filter.sensor_model.laser_offset)
+            self._scorer = AgreementScorer(occupancy_map, self.filter.sensor_model.laser_offset,
+                                           range_scale=self.params.lidar_scale_to_map_scale)
             self.health_monitor.reset()
             if self.filter.initialized:
                 inside = ~occupancy_map.is_occupied_or_outside(self.filter.particles[:, :2])
@@ -143,6 +207,36 @@ class Localizer:
                     self._estimate = None
             elif self.params.global_localization:
                 self._initialize_global_locked()
+
+    # ------------------------------------------------------------------ node services (issue 11)
+    def prepare_ray_caster(self, occupancy_map: OccupancyMap):
+        """The sensor model's ray caster for ``occupancy_map`` (the slow part of ``set_map``: a
+        range table built or loaded), made without touching the filter, so a caller can run it on
+        another thread and then call ``set_map(occupancy_map, caster)``; ``map_pending`` is True
+        meanwhile (inputs are reported as waiting for the table)."""
+        from localization.core.raycast import make_ray_caster
+        self.map_pending = True
+        sensor = self.filter.sensor_model
+        if isinstance(sensor, LikelihoodFieldModel):  # no ray caster: its distance field
+            return sensor.prepare(occupancy_map)
+        max_range = sensor.z_max * occupancy_map.resolution
+        return make_ray_caster(sensor.ray_caster_kind, occupancy_map, max_range, sensor.scan_theta_discretization,
+                               sensor.range_table_lazy_cells)
+
+    def set_laser_offset(self, offset) -> None:
+        """The laser pose (x, y, yaw) in the robot frame, e.g. read from TF."""
+        offset = np.asarray(offset, dtype=float).reshape(3)
+        with self._lock:
+            sensor = self.filter.sensor_model
+            sensor.laser_offset = offset.copy()
+            sensor.laser_offset_x, sensor.laser_offset_y, sensor.laser_offset_yaw = (float(v) for v in offset)
+            if self._scorer is not None:
+                self._scorer.laser_offset = offset.copy()
+
+    def request_update(self) -> None:
+        """The next scan updates the filter even without motion (nav2's request_nomotion_update)."""
+        with self._lock:
+            self._force_update = True
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
         """(Re-)initialise the cloud around a pose; covariance (3×3 over x, y, θ) if given.
@@ -166,7 +260,7 @@ class Localizer:
         std = (self.params.initial_std_xy, self.params.initial_std_xy, self.params.initial_std_theta)
         with self._lock:
             self.filter.resize(self.params.num_particles)
-            self.global_mode = False
+            self.global_mode = self.filter.kld_hold = False
             self.filter.initialize_gaussian(pose, cov, std)
             self._after_init(stamp)
         return True
@@ -176,27 +270,52 @@ class Localizer:
         with self._lock:
             return self._initialize_global_locked(stamp)
 
+    @property
+    def global_particle_count(self) -> int:
+        """Particles of a global spread (start, service, recovery): max_particles with
+        adaptive_particles (KLD then shrinks the cloud as it converges), else global_num_particles."""
+        return self.params.max_particles if self.params.adaptive_particles else self.params.global_num_particles
+
     def _initialize_global_locked(self, stamp: float = 0.0) -> bool:
         if self.map is None:
             self.log.warning("global localization requested before a map arrived: will spread once it does")
             return False
-        self.filter.resize(self.params.global_num_particles)
+        self.filter.resize(self.global_particle_count)
         self.filter.initialize_uniform(self.map)
         self.global_mode = True
+        self.filter.kld_hold = True  # adaptive_particles: a global spread keeps max_particles until it converges
         self._after_init(stamp)
+        self._seed_pending = self.params.global_init == "scan"  # the next scan proposes the poses
         return True
 
+    def _seed_from_scan(self, scan) -> None:
+        """global_init scan (lock held): replace the uniform spread by particles drawn from the
+        poses the scan fits (``filter.global_init``), before the scan's own sensor update."""
+        self._seed_pending = False
+        t0 = time.perf_counter()
+        seeds = seed_from_scan(self.map, self.filter.sensor_model, scan.ranges, scan.angles,
+                               self.filter.num_particles, self.filter.rng, ScanSeedParams.from_parameters(self.params))
+        self.filter.particles = seeds.poses
+        self.filter.log_weights = np.full(len(seeds.poses), -np.log(len(seeds.poses)))
+        self.log.info(f"global localization: {seeds.lattice_poses} lattice poses scored against the scan in "
+                      f"{time.perf_counter() - t0:.2f} s; {len(seeds.poses)} particles drawn around the best "
+                      f"{len(seeds.candidates)}")
+
     def _after_init(self, stamp: float) -> None:
+        self._inits += 1
         self.health_monitor.reset(keep_slow=True)
-        with self._pending_lock:
-            self._pending[:] = 0.0
         self._force_update = True
         self._since_update[:] = 0.0
+        with self._odom_lock:  # the particles describe the pose's stamp (the newest odometry's time if unusable)
+            self._t_filter = self._history_time(stamp) if len(self._odom) else None
         est = self.filter.estimate()
-        self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+        with self._odom_lock:
+            self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+            self._estimate_t = stamp if self._t_filter is None else self._t_filter
 
     def on_odometry(self, twist: TwistData) -> PoseEstimate | None:
-        """Apply the motion since the previous odometry message; returns the new estimate."""
+        """Add an odometry message to the history and move the particles through it; returns the
+        latest sensor-corrected estimate carried forward to the message's stamp."""
         stamp, vx, vy, wz = twist.stamp, twist.vx, twist.vy, twist.wz
         if not all(math.isfinite(v) for v in (stamp, vx, vy, wz)):
             self.warn("odom-nan", f"odometry with a non-finite value ignored (t={stamp}, v=({vx}, {vy}), w={wz})")
@@ -207,41 +326,102 @@ class Localizer:
                       f"{self.params.odom_max_yaw_rate} rad/s)")
             return None
         last, self._last_odom_stamp = self._last_odom_stamp, stamp
+        before_jump, self._odom_before_jump = self._odom_before_jump, None
+        max_gap = self.params.odom_max_gap
+        if last is not None:
+            dt = stamp - last
+            if not 0.0 < dt <= max_gap and before_jump is not None and 0.0 < stamp - before_jump <= max_gap:
+                dt, before_jump = stamp - before_jump, None  # one message with a bad stamp: continue from before it
+            if dt <= 0.0 or dt > max_gap:
+                self._odom_before_jump = last
+                self.warn("odom-jump", f"odometry stamp jumped by {dt:+.3f} s (bag loop or sensor restart): "
+                          "motion reference reset, particles not moved")
+                return None
+        with self._odom_lock:
+            if last is None or before_jump is not None:  # the first message, or the clock jumped at `last`:
+                self._odom.reset()  # a new history from there (the motion across the jump is lost)
+                if last is not None:
+                    self._odom.add(TwistData(last, 0.0, 0.0, 0.0))
+            self._odom.add(twist)
+            self._odom_now = stamp
+            keep = [t for t in (self._t_filter, self._estimate_t, self._odom.latest) if t is not None]
+            self._odom.trim(min(keep) - max_gap)
         if last is None or not self.ready:
             if not self.ready:
                 self.warn("odom-not-ready", self._not_ready_reason("odometry"), logging.INFO)
             return None
-        dt = stamp - last
-        before_jump, self._odom_before_jump = self._odom_before_jump, None
-        max_gap = self.params.odom_max_gap
-        if not 0.0 < dt <= max_gap and before_jump is not None and 0.0 < stamp - before_jump <= max_gap:
-            dt = stamp - before_jump  # the jump was one message with a bad stamp: continue from before it
-        if dt <= 0.0 or dt > self.params.odom_max_gap:
-            self._odom_before_jump = last
-            self.warn("odom-jump", f"odometry stamp jumped by {dt:+.3f} s (bag loop or sensor restart): "
-                      "motion reference reset, particles not moved")
-            return None
-        delta = integrate_twist(vx, vy, wz, dt)
-        if self._lock.acquire(blocking=False):
+        if self._lock.acquire(blocking=False):  # else a sensor update is running: it applies the odometry later
             try:
-                self._apply_motion(delta)
-                est = self.filter.estimate()
-                self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
+                self._advance_locked(self._odom.latest)
             finally:
                 self._lock.release()
-        else:  # a sensor update is running: queue the motion, predict from the last estimate
-            with self._pending_lock:
-                self._pending = compose(self._pending, delta)
-                self._pending_stamp = stamp
         return self.estimate
 
-    def _apply_motion(self, delta) -> None:
-        with self._pending_lock:
-            pending, self._pending = self._pending, np.zeros(3)
-        if pending.any():
-            delta = compose(pending, delta)
-        self.filter.motion_update(delta)
-        self._since_update += (np.hypot(delta[0], delta[1]), abs(delta[2]))
+    def _advance_locked(self, t: float | None) -> None:
+        """Move the particles forward to time t through the odometry history, one constant-twist
+        arc (with motion noise) per odometry period (lock held; never backwards)."""
+        with self._odom_lock:
+            t_from = self._history_time(self._t_filter)
+            if t is None or t_from is None or not t > t_from:
+                self._t_filter = t_from if t_from is not None else t
+                return
+            dts, twists = self._odom.segments(t_from, t)
+        for dt, (vx, vy, wz) in zip(dts, twists):
+            delta = integrate_twist(vx, vy, wz, dt)
+            self.filter.motion_update(delta)
+            self._since_update += (math.hypot(delta[0], delta[1]), abs(delta[2]))
+        self._t_filter = t
+        with self._odom_lock:
+            est, est_t = self._estimate, self._estimate_t
+        if est is not None and est_t is not None and est_t < t - 0.5 * self.params.odom_max_gap:
+            carried = self._carried(est, est_t, t)  # keep the history short
+            with self._odom_lock:
+                self._estimate, self._estimate_t = carried, t
+
+    def scan_time(self, scan: ScanData) -> float:
+        """The time a scan describes: its stamp (the first beam), or the middle of its sweep
+        when it carries per-beam timing (stamp + ½ (n − 1) time_increment)."""
+        sweep = self._sweep(scan)
+        return scan.stamp + 0.5 * sweep * (np.size(scan.ranges) - 1)
+
+    @staticmethod
+    def _sweep(scan: ScanData) -> float:
+        """time_increment (s) if usable (finite, > 0, the sweep at most MAX_SWEEP_S), else 0."""
+        ti = scan.time_increment
+        ok = isinstance(ti, (int, float)) and math.isfinite(ti) and ti > 0 and ti * np.size(scan.ranges) <= MAX_SWEEP_S
+        return float(ti) if ok else 0.0
+
+    def _move_to_scan_locked(self, t_s: float | None):
+        """Bring the particles to the scan's time t_s (lock held): forward through the odometry
+        (the last twist extrapolated past the newest message), or exactly back when odometry newer
+        than the scan was applied already — that motion is returned, to apply again after the
+        update. Without alignment (t_s None) they go to the newest odometry (as before issue 10)."""
+        if t_s is None:
+            with self._odom_lock:
+                latest = self._odom.latest
+            self._advance_locked(latest)
+            return None
+        self._advance_locked(t_s)
+        if self._t_filter is None or not t_s < self._t_filter:
+            return None
+        with self._odom_lock:
+            later = self._odom.motion(t_s, self._t_filter)
+        self.filter.particles = compose(self.filter.particles, inverse(later))
+        return later
+
+    def _deskew_offsets(self, full_scan: ScanData, t_s: float):
+        """Per-beam laser motion δ_b (B, 3) in the laser frame from t_s to each used beam's own
+        time t_b = stamp + i_b · time_increment: δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's constant-twist
+        arc (the odometry twist at t_s) over t_b − t_s, L the laser offset. None without sweep timing."""
+        sweep = self._sweep(full_scan)
+        if not (sweep > 0 and self.params.deskew and getattr(self.filter.sensor_model, "supports_deskew", False)):
+            return None
+        idx = downsample_indices(np.size(full_scan.ranges), self.params.num_beams_per_particle)
+        with self._odom_lock:
+            vx, vy, wz = self._odom.twist_at(t_s)
+        robot = integrate_twists(vx, vy, wz, full_scan.stamp + idx * sweep - t_s)
+        laser = np.asarray(self.filter.sensor_model.laser_offset, dtype=float)
+        return compose(inverse(laser), compose(robot, laser))
 
     def _check_health(self, est, scan, range_min: float, range_max: float, stamp: float):
         """After a sensor update (lock held): shrink a converged global cloud back to num_particles;
@@ -249,16 +429,17 @@ class Localizer:
         if self.global_mode:
             if cloud_spread(est.covariance) >= self.params.global_converged_std:
                 return est  # still spread: the mean pose of many hypotheses says nothing yet
-            self.global_mode = False
-            self.filter.resize(self.params.num_particles)
+            self.global_mode = self.filter.kld_hold = False
+            if self.filter.kld is None:  # adaptive_particles: the KLD sampler shrinks the cloud itself
+                self.filter.resize(self.params.num_particles)
             self.health_monitor.reset(keep_slow=True)
             self.log.info(f"global localization converged at ({est.pose[0]:.2f}, {est.pose[1]:.2f}, "
-                          f"{est.pose[2]:.2f}): {self.params.num_particles} particles")
+                          f"{est.pose[2]:.2f}): {self.filter.num_particles} particles")
         agreement = self._scorer.score(est.pose, scan.ranges, scan.angles, range_min, range_max)
         if self.health_monitor.update(agreement) and self.params.recovery:
             m = self.health_monitor
             self.log.warning(f"localization lost: scan-map agreement {m.fast:.2f} (long-term {m.slow:.2f}) for "
-                             f"{m.low_count} updates; re-spreading {self.params.global_num_particles} particles "
+                             f"{m.low_count} updates; re-spreading {self.global_particle_count} particles "
                              "over the free space (recovery)")
             self.recoveries += 1
             self._initialize_global_locked(stamp)
@@ -266,13 +447,16 @@ class Localizer:
         return est
 
     def _not_ready_reason(self, what: str) -> str:
+        if self.map_pending:
+            return f"{what} ignored: waiting for the range table of the map (being built or loaded)"
         if self.map is None:
             return f"{what} ignored: no map received yet"
         return f"{what} ignored: waiting for an initial pose (/initialpose) or global localization"
 
     def on_scan(self, full_scan: ScanData) -> PoseEstimate | None:
-        """Sensor update (+ resampling) from a full scan; returns the new estimate, or None
-        when the filter is not ready or the car has not moved enough since the last update."""
+        """Sensor update (+ resampling) from a full scan at the scan's own time; returns the new
+        estimate (stamped with that time), or None when the filter is not ready or the car has not
+        moved enough since the last update."""
         if not self.ready:
             self.warn("scan-not-ready", self._not_ready_reason("scan"), logging.INFO)
             return None
@@ -294,32 +478,56 @@ class Localizer:
             self.warn("scan-limits", f"scan range limits [{range_min}, {range_max}] are unusable: "
                       f"using [0, {self.filter.sensor_model.max_range:.2f}] m")
             range_min, range_max = 0.0, self.filter.sensor_model.max_range
+        t_s = self.scan_time(full_scan) if self.params.align_odometry else None
         with self._lock:
-            self._apply_motion(np.zeros(3))
-            moved = (self._since_update[0] >= self.params.update_min_distance
-                     or self._since_update[1] >= self.params.update_min_angle)
-            if not (moved or self._force_update):
-                return None
-            scan = downsample_scan(full_scan, self.params.num_beams_per_particle, range_min, range_max)
-            if not np.isfinite(scan.ranges).any():
-                self.warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
-                return None
-            result = self.filter.sensor_update(scan.ranges, scan.angles)
-            if not result.ok:
-                self._impossible_scans += 1
-                if self._impossible_scans >= self.params.max_impossible_scans:
-                    self.log.warning(f"{self._impossible_scans} scans in a row gave every particle likelihood 0 "
-                                     "(all off the map or in walls): re-spreading particles over the free space")
-                    self._impossible_scans = 0
-                    self.recoveries += 1
-                    self._initialize_global_locked(stamp)
-                else:
-                    self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
-                return None
-            self._impossible_scans = 0
-            self._force_update = False
-            self._since_update[:] = 0.0
-            est: Estimate = self.filter.estimate()
-            est = self._check_health(est, scan, range_min, range_max, stamp)
+            later = self._move_to_scan_locked(t_s)  # odometry newer than the scan, taken back until the update
+            inits = self._inits
+            try:
+                return self._update_locked(full_scan, t_s, range_min, range_max)
+            finally:
+                if later is not None and self._inits == inits:  # apply the later odometry again
+                    self.filter.particles = compose(self.filter.particles, later)
+
+    def _update_locked(self, full_scan: ScanData, t_s: float | None, range_min: float,
+                       range_max: float) -> PoseEstimate | None:
+        """on_scan's sensor update, the particles at the scan's time t_s (lock held; t_s None:
+        without alignment, at the newest odometry, the estimate stamped with the scan's stamp)."""
+        stamp = full_scan.stamp if t_s is None else t_s
+        moved = (self._since_update[0] >= self.params.update_min_distance
+                 or self._since_update[1] >= self.params.update_min_angle)
+        with self._odom_lock:
+            vx, vy, wz = self._odom.twist_at(stamp if self._t_filter is None else self._t_filter)
+        standing = math.hypot(vx, vy) < STANDING_SPEED and abs(wz) < STANDING_YAW_RATE
+        self._stop_updated = self._stop_updated and standing
+        stopped_here = standing and not self._stop_updated and self._since_update.any()  # once where it stopped
+        if not (moved or self._force_update or stopped_here):
+            return None
+        scan = downsample_scan(full_scan, self.params.num_beams_per_particle, range_min, range_max)
+        if not np.isfinite(scan.ranges).any():
+            self.warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
+            return None
+        if self._seed_pending and self.global_mode:
+            self._seed_from_scan(scan)
+        offsets = None if t_s is None else self._deskew_offsets(full_scan, t_s)
+        result = self.filter.sensor_update(scan.ranges, scan.angles, offsets)
+        if not result.ok:
+            self._impossible_scans += 1
+            if self._impossible_scans >= self.params.max_impossible_scans:
+                self.log.warning(f"{self._impossible_scans} scans in a row gave every particle likelihood 0 "
+                                 "(all off the map or in walls): re-spreading particles over the free space")
+                self._impossible_scans = 0
+                self.recoveries += 1
+                self._initialize_global_locked(stamp)
+            else:
+                self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
+            return None
+        self._impossible_scans = 0
+        self._force_update = False
+        self._stop_updated = standing
+        self._since_update[:] = 0.0
+        est: Estimate = self.filter.estimate()
+        est = self._check_health(est, scan, range_min, range_max, stamp)
+        with self._odom_lock:
             self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
-            return self._estimate
+            self._estimate_t = self._t_filter if t_s is None else t_s
+        return self._estimate

@@ -1,7 +1,30 @@
-"""Odometry in the core: the twist a wheel-odometry message reports, at its stamp."""
+"""Odometry in the core: the twist a wheel-odometry message reports, at its stamp, and a short
+history of them on the scan's clock (``OdometryBuffer``).
+
+A wheel-odometry message k stamped t_k reports the twist of the period since the previous one;
+corrected by the car's calibration (the localizer's parameters)::
+
+    t'_k  = t_k + odom_time_offset                   (its period ends at t'_k on the scan clock)
+    vx'   = odom_speed_scale · vx,   vy' = odom_speed_scale · vy
+    ωz'   = odom_yaw_rate_scale · ωz + odom_yaw_rate_bias
+
+The corrected twist is constant over (t'_{k−1}, t'_k]. Past the newest message the last twist is
+extrapolated for at most ``MAX_EXTRAPOLATION_S`` (then the car is taken as standing: odometry that
+stopped does not drive the particles on); before the oldest stamp nothing is known (no motion).
+The motion between any two times is the composition of the constant-twist arcs
+(``geometry.integrate_twist``) of the pieces between them (``segments``, ``motion``); ``twist_at``
+is the twist holding at a time (the deskew of a sweep uses it).
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.geometry import compose, integrate_twist, inverse
+
+MAX_EXTRAPOLATION_S = 0.1  # s: the last twist is extrapolated at most this far past the newest message
 
 
 @dataclass
@@ -13,3 +36,92 @@ class TwistData:
     vy: float  # m/s
     wz: float  # rad/s
     frame_id: str = ""
+
+
+class OdometryBuffer:
+    """The recent odometry messages, corrected and on the scan clock (see the module docstring).
+
+    ``add`` expects stamps increasing (the localizer rejects the others first); ``trim`` drops
+    what is no longer needed. Not thread safe by itself: the localizer guards it with a lock."""
+
+    def __init__(self, time_offset: float = 0.0, speed_scale: float = 1.0, yaw_rate_scale: float = 1.0,
+                 yaw_rate_bias: float = 0.0):
+        self.time_offset = float(time_offset)  # s
+        self.speed_scale = float(speed_scale)
+        self.yaw_rate_scale = float(yaw_rate_scale)
+        self.yaw_rate_bias = float(yaw_rate_bias)  # rad/s
+        self._t: list[float] = []  # corrected stamps t'_k (end of each period)
+        self._twist: list[tuple[float, float, float]] = []  # corrected (vx, vy, ωz) over (t'_{k−1}, t'_k]
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    @property
+    def latest(self) -> float | None:
+        """Corrected time of the newest message (None when empty)."""
+        return self._t[-1] if self._t else None
+
+    @property
+    def oldest(self) -> float | None:
+        return self._t[0] if self._t else None
+
+    def add(self, twist: TwistData) -> float:
+        """Append a message; returns its corrected time t'."""
+        t = float(twist.stamp) + self.time_offset
+        s = self.speed_scale
+        self._t.append(t)
+        self._twist.append((s * float(twist.vx), s * float(twist.vy),
+                            self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
+        return t
+
+    def reset(self) -> None:
+        self._t.clear()
+        self._twist.clear()
+
+    def trim(self, before: float, keep: int = 2) -> None:
+        """Forget messages whose period ended before ``before`` (keeping the boundary that starts
+        the period holding ``before``, and at least ``keep`` messages)."""
+        n = int(np.searchsorted(self._t, before, side="left")) - 1  # self._t[n] < before: still the start
+        n = min(n, len(self._t) - keep)
+        if n > 0:
+            del self._t[:n]
+            del self._twist[:n]
+
+    def twist_at(self, t: float) -> np.ndarray:
+        """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end; zero
+        before the oldest stamp, past the extrapolation limit, or when empty)."""
+        if not self._t or t <= self._t[0] or t >= self._t[-1] + MAX_EXTRAPOLATION_S:
+            return np.zeros(3)
+        k = min(int(np.searchsorted(self._t, t, side="left")), len(self._t) - 1)
+        return np.array(self._twist[k])
+
+    def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pieces of constant twist covering [t0, t1] (t0 ≤ t1), cut at message stamps:
+        durations (P,) and twists (P, 3). Pieces before the oldest stamp have zero twist."""
+        if not t1 > t0:
+            return np.zeros(0), np.zeros((0, 3))
+        stamps = np.asarray(self._t, dtype=float)
+        cuts = np.append(stamps, stamps[-1] + MAX_EXTRAPOLATION_S) if stamps.size else stamps
+        inner = cuts[(cuts > t0) & (cuts < t1)]
+        edges = np.concatenate([[t0], inner, [t1]])
+        dts = np.diff(edges)
+        twists = np.zeros((dts.size, 3))
+        if stamps.size:
+            mid = 0.5 * (edges[:-1] + edges[1:])
+            k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
+            known = (mid > stamps[0]) & (mid < stamps[-1] + MAX_EXTRAPOLATION_S)
+            twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
+        keep = dts > 0
+        return dts[keep], twists[keep]
+
+    def motion(self, t0: float, t1: float) -> np.ndarray:
+        """Robot-frame displacement [dx, dy, dθ] from time t0 to t1 (expressed in the robot frame
+        at t0); the inverse motion when t1 < t0."""
+        if not (math.isfinite(t0) and math.isfinite(t1)):
+            return np.zeros(3)
+        if t1 < t0:
+            return inverse(self.motion(t1, t0))
+        delta = np.zeros(3)
+        for dt, (vx, vy, wz) in zip(*self.segments(t0, t1)):
+            delta = compose(delta, integrate_twist(vx, vy, wz, dt))
+        return delta

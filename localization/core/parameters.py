@@ -144,6 +144,108 @@ PARAMETERS = [
           "plus an exact finish per beam: slower, as accurate as exact), distance_transform or exact",
           _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
           "lookup_table, lookup_table_exact, distance_transform or exact"),
+    # --- node interface (issue 11): nav2-style options, watchdogs and diagnostics, pose persistence
+    Param("pose_topic", "/pf/pose", "geometry_msgs/PoseWithCovarianceStamped output of the estimate (as nav2_amcl's "
+          "/amcl_pose), beside /pf/pose/odom", _topic, "a topic name"),
+    Param("set_initial_pose", False, "start from initial_pose.x/.y/.yaw (as nav2_amcl) instead of waiting for "
+          "/initialpose", lambda v: isinstance(v, bool), "true or false"),
+    Param("initial_pose.x", 0.0, "initial pose x (m, map frame) used when set_initial_pose is true", _finite, "finite"),
+    Param("initial_pose.y", 0.0, "initial pose y (m, map frame)", _finite, "finite"),
+    Param("initial_pose.yaw", 0.0, "initial pose heading (rad, map frame)", _finite, "finite"),
+    Param("base_frame", "base_link", "the robot's frame: the laser pose is looked up in TF as base_frame -> the "
+          "scan's frame", _topic, "a frame id"),
+    Param("laser_pose_from_tf", True, "read the laser pose from TF (base_frame -> scan frame, /tf_static or /tf) when "
+          "available; laser_offset_* otherwise", lambda v: isinstance(v, bool), "true or false"),
+    Param("odom_timeout", 0.5, "warn (on /diagnostics and in the log) when scans arrive but no odometry came for "
+          "this long (s)", _positive, "> 0"),
+    Param("scan_timeout", 0.5, "warn when odometry arrives but no scan came for this long (s)", _positive, "> 0"),
+    Param("map_timeout", 5.0, "warn when no map has arrived this long (s) after the start", _positive, "> 0"),
+    Param("tf_timeout", 1.0, "warn (and use laser_offset_*) when the laser pose is not in TF this long (s) after "
+          "the first scan", _positive, "> 0"),
+    Param("diagnostics_period", 1.0, "period (s) of /diagnostics (diagnostic_msgs/DiagnosticArray)", _positive, "> 0"),
+    Param("persist_pose", False, "write the estimate and its covariance to persist_pose_file every "
+          "persist_pose_period s, and start from it when no initial pose is set", lambda v: isinstance(v, bool),
+          "true or false"),
+    Param("persist_pose_file", "", "file of the persisted pose; empty: last_pose.yaml in the cache directory "
+          "($LOCALIZATION_CACHE_DIR or ~/.cache/localization)", lambda v: isinstance(v, str), "a path or empty"),
+    Param("persist_pose_period", 3.0, "seconds between two writes of the persisted pose", _positive, "> 0"),
+    # --- global localization in seconds and large maps (issue 12, items 3-4): core/filter/global_init.py,
+    # core/raycast/lookup_table.py (tiles built on demand)
+    Param("global_init", "scan", "how a global spread (start, service, recovery) places its particles: scan "
+          "(importance sampling of poses from the first scan over a coarse lattice, see global_seed_*) or uniform "
+          "(uniform over the free space)", _one_of("scan", "uniform"), "scan or uniform"),
+    Param("global_seed_step", 0.2, "global_init scan: lattice spacing (m) of the candidate positions", _positive,
+          "> 0"),
+    Param("global_seed_headings", 72, "global_init scan: candidate headings per lattice position",
+          lambda v: isinstance(v, int) and 1 <= v <= 3600, "an integer in [1, 3600]"),
+    Param("global_seed_beams", 30, "global_init scan: beams of the scan used to score the lattice",
+          lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
+    Param("global_seed_candidates", 4000, "global_init scan: best lattice poses the particles are drawn around",
+          lambda v: isinstance(v, int) and 1 <= v <= 10_000_000, "an integer in [1, 10000000]"),
+    Param("global_seed_temperature", 4.0, "global_init scan: candidate weights exp(log-likelihood / this); larger "
+          "keeps more look-alike places alive", _positive, "> 0"),
+    Param("global_seed_uniform", 0.1, "global_init scan: fraction of the particles still spread uniformly",
+          _fraction, "in [0, 1]"),
+    Param("range_table_lazy_cells", 10_000_000, "maps with more cells than this build the lookup table tile by "
+          "tile where particles are (memory grows with the area driven, not with the map); 0: always",
+          lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
+    # --- likelihood-field sensor model and KLD-adaptive particle count (issue 12, items 1-2):
+    # core/sensors/likelihood_field.py, core/filter/kld.py (names as nav2_amcl's, lf_ where the beam model has one)
+    Param("sensor_model", "beam", "beam (the course's beam model over ray-cast ranges) or likelihood_field (each "
+          "beam's end point scored by its distance to the nearest occupied cell, as nav2_amcl's likelihood_field; "
+          "docs/models.md says when to use which)", _one_of("beam", "likelihood_field"), "beam or likelihood_field"),
+    Param("lf_z_hit", 0.5, "likelihood_field: weight of the Gaussian of the end point's distance to the nearest "
+          "obstacle", _non_negative, ">= 0"),
+    Param("lf_z_rand", 0.5, "likelihood_field: weight of the uniform density 1 / laser_max_range", _non_negative,
+          ">= 0"),
+    Param("lf_sigma_hit", 0.1, "likelihood_field: std (m) of that Gaussian (the beam model's sigma_hit is in cells; "
+          "nav2's default 0.2 is worse on the Stata trials and the RSS 2022 bags, docs/models.md)",
+          _positive, "> 0"),
+    Param("laser_likelihood_max_dist", 2.0, "likelihood_field: distances to the nearest obstacle are capped at this "
+          "(m); end points off the map count as this far", _positive, "> 0"),
+    Param("laser_max_range", 30.0, "likelihood_field: beams at or beyond this range (m), or invalid, are skipped "
+          "(max-range readings say nothing about where an obstacle is)", _positive, "> 0"),
+    Param("do_beamskip", False, "likelihood_field: ignore beams whose end points lie near an obstacle for less than "
+          "beam_skip_threshold of the particles (unmapped obstacles), as nav2_amcl", lambda v: isinstance(v, bool),
+          "true or false"),
+    Param("beam_skip_distance", 0.5, "do_beamskip: an end point closer than this (m) to an obstacle agrees with the "
+          "map", _positive, "> 0"),
+    Param("beam_skip_threshold", 0.3, "do_beamskip: a beam is used when at least this fraction of the particles "
+          "agree on it", _fraction, "in [0, 1]"),
+    Param("beam_skip_error_threshold", 0.9, "do_beamskip: when this fraction of the beams would be skipped the "
+          "cloud is off: all beams are used", _fraction, "in [0, 1]"),
+    Param("adaptive_particles", False, "KLD-adaptive particle count (Fox 2003, as nav2_amcl): every resampling draws "
+          "as many particles as the cloud's spread over bins of kld_bin_xy x kld_bin_theta needs, in "
+          "[min_particles, max_particles]; global localization and recovery start at max_particles. false: "
+          "num_particles always", lambda v: isinstance(v, bool), "true or false"),
+    Param("min_particles", 500, "adaptive_particles: fewest particles", lambda v: isinstance(v, int) and v >= 1,
+          "an integer >= 1"),
+    Param("max_particles", 40000, "adaptive_particles: most particles, and the count a global spread (start, "
+          "service, recovery) keeps until it converges (as global_num_particles without adaptive_particles)",
+          lambda v: isinstance(v, int) and 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
+    Param("pf_err", 0.05, "adaptive_particles: KLD bound epsilon between the sampled and the true distribution",
+          lambda v: _positive(v) and v < 1, "in (0, 1)"),
+    Param("pf_z", 0.99, "adaptive_particles: upper standard normal quantile z_(1-delta) of the KLD bound (nav2_amcl's "
+          "pf_z, used as the quantile value)", _positive, "> 0"),
+    Param("kld_bin_xy", 0.5, "adaptive_particles: histogram bin size (m) in x and y", _positive, "> 0"),
+    Param("kld_bin_theta", 0.17453292519943295, "adaptive_particles: histogram bin size (rad) in heading (10 deg)",
+          _positive, "> 0"),
+    # --- time-correct localization (issue 10, items 2-3): odometry on the scan's clock and scan deskew
+    # (core/odometry.py OdometryBuffer, core/localizer.py, core/sensors/beam.py); values from localization-calibrate
+    Param("align_odometry", True, "propagate the particles through the odometry history to each scan's own time "
+          "(interpolating between messages, extrapolating the last twist; a swept scan: the middle of its sweep) and "
+          "stamp the estimate with that time; false: each scan is used at the latest odometry (as before issue 10)",
+          lambda v: isinstance(v, bool), "true or false"),
+    Param("odom_time_offset", 0.0, "odometry clock vs scan clock (s): an odometry message stamped t describes the "
+          "motion up to t + odom_time_offset (odometry reporting 40 ms late: -0.04)",
+          lambda v: _finite(v) and abs(v) <= 1.0, "in [-1, 1]"),
+    Param("odom_speed_scale", 1.0, "speed used = odom_speed_scale x reported speed", _positive, "> 0"),
+    Param("odom_yaw_rate_scale", 1.0, "yaw rate used = odom_yaw_rate_scale x reported yaw rate + odom_yaw_rate_bias",
+          _positive, "> 0"),
+    Param("odom_yaw_rate_bias", 0.0, "rad/s added to the scaled reported yaw rate", _finite, "finite"),
+    Param("deskew", True, "when a scan has time_increment > 0 (a sweeping lidar), cast each beam from the laser pose "
+          "at its own time, moved by the odometry twist over the sweep (beam sensor model)",
+          lambda v: isinstance(v, bool), "true or false"),
 ]
 
 BY_NAME = {p.name: p for p in PARAMETERS}
@@ -165,6 +267,17 @@ def default(name: str, course: bool = False):
     if course and name in COURSE_DEFAULTS:
         return COURSE_DEFAULTS[name]
     return BY_NAME[name].default
+
+
+def _flatten(values: dict, prefix: str = "") -> dict:
+    """Nested YAML mappings as ROS 2 reads them: ``initial_pose: {x: 1.0}`` -> ``initial_pose.x``."""
+    flat = {}
+    for name, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{name}."))
+        else:
+            flat[f"{prefix}{name}"] = value
+    return flat
 
 
 class ParameterError(ValueError):
@@ -202,7 +315,8 @@ class Parameters(dict):
             value = self[p.name]
             if type(value) is not type(p.default) and not (isinstance(p.default, float) and isinstance(value, int)
                                                            and not isinstance(value, bool)):
-                problems.append(f"{p.name}={value!r} must be a {type(p.default).__name__}")
+                kind = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}[type(p.default)]
+                problems.append(f"{p.name}={value!r} must be {kind}")
             elif p.check is not None and not p.check(value):
                 problems.append(f"{p.name}={value!r} must be {p.rule}")
         if not problems and sum(self[a] for a in ("alpha_hit", "alpha_short", "alpha_max", "alpha_rand")) <= 0:
@@ -221,6 +335,6 @@ class Parameters(dict):
         values = {}
         for key in ("/**", node_name, "/" + node_name):
             section = doc.get(key, {}) if isinstance(doc, dict) else {}
-            values.update((section or {}).get("ros__parameters", {}) or {})
+            values.update(_flatten((section or {}).get("ros__parameters", {}) or {}))
         values.update(overrides)
         return cls(values)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from localization.core.occupancy_map import load_map
 from localization.core.paths import cache_dir, shared_dir
-from localization.sim import SimConfig, code_version, record
+from localization.sim import CarModel, SimConfig, code_version, record
 
 # Corridor centre lines of stata_basement (map frame, metres), measured on the map's clearance.
 _DIAGONAL_SW = ((-8.45, 18.4), (-10.4, 16.3), (-12.5, 14.5), (-13.9, 12.4), (-15.2, 10.5), (-16.2, 9.5),
@@ -63,6 +63,18 @@ SIM_TRIALS = {t.name: t for t in (
              "odometry noise 0.3, speed 5 % short, yaw-rate bias 0.05 rad/s", 0.3,
              SimConfig(start=(-6.6, 20.5, -2.24), waypoints=_LOOP, closed=True, duration=75.0, speed=2.5, seed=4,
                        odom_noise=0.3, speed_scale=0.95, yaw_rate_bias=0.05)),
+    # time-correct localization (issue 10): fast driving, odometry latency, sweep timing, calibration
+    SimTrial("fast", "Fast: the basement loop (diagonal, bottom, west, top corridors) at up to 7 m/s on the "
+             "straights; odometry 40 ms late, noise 0.3; lidar sweep timing", 0.3,
+             SimConfig(start=(-6.6, 20.5, -2.24), waypoints=_LOOP[:-3], speed=7.0, seed=5, odom_noise=0.3,
+                       odom_latency=0.04, sweep=True, car=CarModel(max_lateral_accel=6.0))),
+    SimTrial("calibration", "Calibration: the basement loop at 2–4 m/s (turns, speed changes) with known odometry "
+             "latency 30 ms, speed scale 0.95, yaw-rate scale 1.04 and bias 0.03 rad/s, laser at "
+             "(0.30, 0.02, 0.015), range scale 1.01; lidar sweep timing", 0.1,
+             SimConfig(start=(-6.6, 20.5, -2.24), waypoints=_LOOP[:-3], speed=4.0, seed=6, odom_noise=0.1,
+                       odom_latency=0.03, speed_scale=0.95, yaw_rate_scale=1.04, yaw_rate_bias=0.03,
+                       laser_offset=(0.30, 0.02, 0.015), range_scale=1.01, sweep=True,
+                       car=CarModel(max_lateral_accel=6.0))),
 )}
 
 #: The reference report's three trials, in its order.

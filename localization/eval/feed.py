@@ -28,6 +28,8 @@ class FeedLog:
     est_poses: list = field(default_factory=list)  # (3,) each
     health_t: list = field(default_factory=list)  # s, after each sensor update with a finite health
     health: list = field(default_factory=list)
+    particles_t: list = field(default_factory=list)  # s, after each sensor update
+    particles: list = field(default_factory=list)  # the particle count then (varies with adaptive_particles)
     sensor_times: list = field(default_factory=list)  # s inside on_scan, per sensor update
     motion_times: list = field(default_factory=list)  # s inside on_odometry, per estimate
     filter_time: float = 0.0  # s inside the Localizer (all calls)
@@ -72,6 +74,8 @@ class Feeder:
         if est is not None:
             self.log.sensor_times.append(dt)
             self.log.counts["sensor_updates"] += 1
+            self.log.particles_t.append(scan.stamp)
+            self.log.particles.append(self.localizer.filter.num_particles)
             if math.isfinite(self.localizer.health):
                 self.log.health_t.append(scan.stamp)
                 self.log.health.append(self.localizer.health)
@@ -109,4 +113,5 @@ def recording_events(rec, t_offset: float = 0.0) -> Iterator[TwistData | ScanDat
             yield TwistData(float(t), *(float(v) for v in twist[k]))
         else:
             yield ScanData(float(t), rec.scan_ranges[k], cfg.angle_min, cfg.angle_max, rec.scan_angle_increment,
-                           cfg.range_min, cfg.range_max)
+                           cfg.range_min, cfg.range_max, time_increment=rec.scan_time_increment,
+                           scan_time=1.0 / cfg.scan_rate)

@@ -53,13 +53,14 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
               interpolation="nearest")
     if truth_poses is not None and len(truth_poses):
         tp = np.asarray(truth_poses, dtype=float)
-        ax.plot(tp[:, 0], tp[:, 1], "-", color="tab:green", lw=2.0, label="ground truth")
-        ax.plot(tp[0, 0], tp[0, 1], "o", color="tab:green", ms=7)
+        ax.plot(tp[:, 0], tp[:, 1], "-", color="tab:green", lw=2.0, label="ground truth", zorder=3)
+        ax.plot(tp[0, 0], tp[0, 1], "o", color="tab:green", ms=7, zorder=3)
     if len(est):
-        ax.plot(est[:, 0], est[:, 1], "-", color="tab:red", lw=1.0, label="estimate")
-    if initial_pose is not None:
+        ax.plot(est[:, 0], est[:, 1], "-", color="tab:red", lw=1.0, label="estimate", zorder=4)
+    if initial_pose is not None:  # an outline under the tracks: the start of the track stays visible
         x, y, th = initial_pose
-        ax.arrow(x, y, 0.8 * np.cos(th), 0.8 * np.sin(th), width=0.08, color="tab:blue", label="initial pose")
+        ax.arrow(x, y, 0.8 * np.cos(th), 0.8 * np.sin(th), width=0.05, facecolor="none", edgecolor="tab:blue",
+                 lw=1.2, alpha=0.8, zorder=2, label="initial pose")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title)
@@ -74,12 +75,14 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
 
 
 def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, agreement_t=None, agreement=None,
-                title: str = "", threshold: float = 0.2) -> Path:
-    """CT error (and heading error) vs time when there is truth, scan–map agreement vs time."""
+                title: str = "", threshold: float = 0.2, particles_t=None, particles=None) -> Path:
+    """CT error (and heading error) vs time when there is truth, scan–map agreement vs time, and the
+    particle count vs time when it changes (adaptive_particles, global spreads)."""
     plt = _pyplot()
     has_truth = ct_t is not None and len(ct_t) > 0
     has_agree = agreement_t is not None and len(agreement_t) > 0
-    rows = int(has_truth) + int(has_agree) or 1
+    has_count = particles is not None and len(particles) > 0 and np.ptp(particles) > 0
+    rows = int(has_truth) + int(has_agree) + int(has_count) or 1
     fig, axes = plt.subplots(rows, 1, figsize=(10, 3.2 * rows), sharex=True, squeeze=False)
     axes = axes[:, 0]
     i = 0
@@ -88,15 +91,23 @@ def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, a
         i += 1
         t = np.asarray(ct_t) - t0
         ax.plot(t, ct_error, color="tab:red", lw=1.0, label="cross-track error")
-        ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"{threshold} m")
+        ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"{threshold} m (converged)")
         ax.set_ylabel("CT error (m)")
-        ax.set_ylim(bottom=0)
+        err = np.asarray(ct_error, dtype=float)
+        top = np.nanmax(err[np.isfinite(err)]) if np.isfinite(err).any() else threshold
+        ax.set_ylim(0, 1.1 * max(top, 1.25 * threshold))  # the whole trace, and the threshold line below the top
+        handles, labels = ax.get_legend_handles_labels()
         if heading_error is not None:
             ax2 = ax.twinx()
-            ax2.plot(t, np.degrees(heading_error), color="tab:blue", lw=0.6, alpha=0.6)
+            line, = ax2.plot(t, np.degrees(heading_error), color="tab:blue", lw=0.6, alpha=0.5,
+                             label="heading error (right axis)")
             ax2.set_ylabel("heading error (deg)", color="tab:blue")
             ax2.set_ylim(bottom=0)
-        ax.legend(loc="upper right", fontsize=8)
+            ax.set_zorder(ax2.get_zorder() + 1)  # the CT error trace drawn over the heading trace
+            ax.patch.set_visible(False)
+            handles.append(line)
+            labels.append(line.get_label())
+        ax.legend(handles, labels, loc="upper right", fontsize=8)
         ax.set_title(title)
     if has_agree:
         ax = axes[i]
@@ -105,6 +116,12 @@ def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, a
         ax.set_ylim(0, 1.02)
         if not has_truth:
             ax.set_title(title)
+        i += 1
+    if has_count:
+        ax = axes[i]
+        ax.step(np.asarray(particles_t) - t0, particles, where="post", color="tab:green", lw=1.0)
+        ax.set_ylabel("particles")
+        ax.set_yscale("log")
     if not (has_truth or has_agree):
         axes[0].text(0.5, 0.5, "no data", ha="center", va="center", transform=axes[0].transAxes)
     axes[-1].set_xlabel("time since start (s)")

@@ -25,7 +25,11 @@ Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the curre
 - ``metrics.json``: CT error statistics, heading error and time to converge (with truth),
   scan–map agreement, update timing, effective update rate (see ``localization.metrics``);
 - ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures;
-- ``trajectory.png`` (map, truth, estimate) and ``error.png`` (errors and agreement vs time).
+- ``trajectory.png`` (map, truth, estimate) and ``error.png`` (errors and agreement vs time);
+- with a reference track (``--reference``; by default when the bag has no ground truth): the
+  estimate scored against every scan matched to the map (``localization.eval.reference``):
+  ``reference_error_m``, ``along_track_error_m``, ``cross_track_error_m``, ``best_lag_s`` ... in
+  metrics.json, and ``reference.png`` (along/cross-track error vs time).
 
 Exit status: 0 success; 1 when the bag, map, parameters or a topic are missing or unusable
 (one line ``localization-replay: error: ...`` on stderr); 2 bad command-line arguments.
@@ -87,6 +91,8 @@ class ReplayOptions:
     truth_frames: tuple = ("map", "base_link")
     progress: bool = False
     label: str = ""
+    reference: bool | None = None  # score against a scan-matched reference track; None: when there is no truth
+    on_scan: object | None = None  # called as on_scan(scan, localizer) after each scan (export.ReplayRecorder)
 
 
 @dataclass
@@ -115,6 +121,9 @@ class ReplayResult:
     truth_source: str | None
     health_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
     health: np.ndarray = field(default_factory=lambda: np.zeros(0))  # Localizer.health (scan-map agreement)
+    particles_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
+    particles: np.ndarray = field(default_factory=lambda: np.zeros(0))  # particle count (adaptive_particles)
+    reference: object | None = None  # localization.eval.reference.ReferenceTrack, when computed
 
     @property
     def has_truth(self) -> bool:
@@ -222,8 +231,8 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
         localizer = Localizer(params)
         localizer.set_map(occupancy_map)
-        scorer = M.AgreementScorer(occupancy_map, (params.laser_offset_x, params.laser_offset_y,
-                                                   params.laser_offset_yaw))
+        mount = (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw)
+        scorer = M.AgreementScorer(occupancy_map, mount, range_scale=params.lidar_scale_to_map_scale)
         topics = [scan_topic, odom_topic] + ([init_topic] if use_bag_initialpose else []) \
             + ([truth_topic] if truth_topic else [])
         progress = _Progress(opts.progress, bag.start_ns, bag.end_ns, opts.label or bag_label(opts.bag))
@@ -265,7 +274,9 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
                     feeder.odometry(data)
                     continue
                 feeder.scan(data)
-                current = localizer.estimate
+                if opts.on_scan is not None:
+                    opts.on_scan(data, localizer)
+                current = localizer.estimate_at(localizer.scan_time(data))  # the pose when the scan was taken
                 if current is not None:
                     key = (data.ranges.size, data.angle_min, data.angle_max, data.angle_increment)
                     if key not in angles_cache:
@@ -299,7 +310,17 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         odom_topic=odom_topic,
         truth_source=(f"{truth_topic} ({parent} -> {child})" if truth_topic == "/tf" else truth_topic)
         if len(truth_t) else None,
-        health_t=np.asarray(log.health_t, dtype=float), health=np.asarray(log.health, dtype=float))
+        health_t=np.asarray(log.health_t, dtype=float), health=np.asarray(log.health, dtype=float),
+        particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float))
+    if opts.reference or (opts.reference is None and not res.has_truth):
+        from localization.eval.reference import reference_for_bag
+        try:
+            res.reference = reference_for_bag(opts.bag, occupancy_map, scan_topic, (
+                params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw), est_t, est_poses,
+                initial_pose, range_scale=params.lidar_scale_to_map_scale)
+        except BagError as exc:
+            raise ReplayError(str(exc)) from None
+        res.wall_time = time.perf_counter() - t_wall0
     return res
 
 
@@ -362,11 +383,21 @@ def compute_metrics(res: ReplayResult) -> dict:
         "has_truth": res.has_truth,
         "truth_source": res.truth_source,
         "health": M.agreement_stats(res.health),  # the filter's own health figure (fast average)
+        "sensor_model": p.sensor_model,
+        "adaptive_particles": p.adaptive_particles,
+        # particle count over the sensor updates (changes with adaptive_particles and global spreads)
+        "particles": ({"min": int(res.particles.min()), "median": float(np.median(res.particles)),
+                       "mean": float(res.particles.mean()), "max": int(res.particles.max())}
+                      if res.particles.size else None),
     }
     if res.has_truth:
         cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
         out["ct_error_m"] = M.error_stats(cmp.ct_error)
         out["heading_error_mean_abs_rad"] = float(cmp.heading_error.mean()) if cmp.heading_error.size else None
+        along, cross = M.along_cross_track(res.est_t, res.est_poses, res.truth_t, res.truth_poses)  # issue 10
+        out["along_track_vs_truth_m"] = {"mean": float(along.mean()) if along.size else None,
+                                         "median": float(np.median(along)) if along.size else None}
+        out["cross_track_vs_truth_m"] = {"mean_abs": float(np.abs(cross).mean()) if cross.size else None}
         t_start = res.init_t if res.init_t is not None else (float(res.est_t[0]) if len(res.est_t) else None)
         out["time_to_converge_s"] = M.time_to_converge(cmp.t, cmp.ct_error, M.CONVERGENCE_THRESHOLD_M, t_start)
         if res.initial_pose is not None and len(res.truth_t):
@@ -376,6 +407,12 @@ def compute_metrics(res: ReplayResult) -> dict:
                 out["initial_pose_heading_error_rad"] = float(abs(wrap_angle(res.initial_pose[2] - truth0[2])))
         out["converge_threshold_m"] = M.CONVERGENCE_THRESHOLD_M
         out["scored_estimates"] = int(cmp.t.size)
+        from localization.eval.reference import truth_decomposition  # along-/cross-track vs truth
+        out.update(truth_decomposition(res.est_t, res.est_poses, res.truth_t, res.truth_poses))
+    if res.reference is not None:
+        from localization.eval.reference import reference_metrics
+        out.update(reference_metrics(res.reference, res.est_t, res.est_poses,
+                                     res.truth_t if res.has_truth else None, res.truth_poses))
     return out
 
 
@@ -436,7 +473,12 @@ def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool =
         files["error"] = plot_errors(out_dir / "error.png", t0,
                                      cmp.t if cmp is not None else None, cmp.ct_error if cmp is not None else None,
                                      cmp.heading_error if cmp is not None else None,
-                                     res.agreement_t, res.agreement, title=title)
+                                     res.agreement_t, res.agreement, title=title,
+                                     particles_t=res.particles_t, particles=res.particles)
+        if res.reference is not None:
+            from localization.eval.reference import plot_reference
+            files["reference"] = plot_reference(out_dir / "reference.png", res.reference, res.est_t, res.est_poses,
+                                                 t0, title=title)
     return files
 
 
@@ -457,10 +499,25 @@ def summary_table(metrics: dict, out_dir: Path | None = None) -> str:
                  ("heading error", "mean |err| " + _fmt(
                      None if m["heading_error_mean_abs_rad"] is None else math.degrees(m["heading_error_mean_abs_rad"]),
                      ".2f", " deg")),
-                 ("converged", ("never" if m["time_to_converge_s"] is None else f"{m['time_to_converge_s']:.2f} s")
+                 ("converged", ("never" if m["time_to_converge_s"] is None else "at the first estimate"
+                                if m["time_to_converge_s"] < 0.05 else f"after {m['time_to_converge_s']:.2f} s")
                   + f" (below {m['converge_threshold_m']} m for good, from the initial pose"
                   + (f" {m['initial_pose_error_m']:.2f} m / {m['initial_pose_heading_error_rad']:.2f} rad off)"
                      if "initial_pose_error_m" in m else ")"))]
+    if m.get("reference_error_m") is not None:
+        r, al, cr = m["reference_error_m"], m["along_track_error_m"], m["cross_track_error_m"]
+        rows += [("vs reference track", f"median {_fmt(r['median'])}  p95 {_fmt(r['p95'])}  max {_fmt(r['max'])} m "
+                                        f"({m['reference_scored']} scans scored, {m['reference_ambiguous']} ambiguous, "
+                                        f"{m['reference_low_score']} unmatched/low score)"),
+                 ("along / cross track", f"along mean {_fmt(al['mean'])} median {_fmt(al['median'])}; "
+                                         f"cross mean {_fmt(cr['mean'])} median {_fmt(cr['median'])} m; "
+                                         f"best lag {_fmt(m['best_lag_s'], '.3f', ' s')}")]
+        if m.get("reference_vs_truth_m"):
+            rows.append(("reference vs truth", f"median {_fmt(m['reference_vs_truth_m']['median'], '.4f')} m"))
+    if m.get("truth_along_track_error_m") is not None:
+        al, cr = m["truth_along_track_error_m"], m["truth_cross_track_error_m"]
+        rows.append(("along / cross vs truth", f"along mean {_fmt(al['mean'])} median {_fmt(al['median'])}; "
+                                               f"cross mean {_fmt(cr['mean'])} median {_fmt(cr['median'])} m"))
     ag = m["scan_map_agreement"]
     rows += [("scan-map agreement", f"median {_fmt(ag['median'])}  mean {_fmt(ag['mean'])}  p05 {_fmt(ag['p05'])}"),
              ("filter health", f"median {_fmt((m.get('health') or {}).get('median'))}  "
@@ -469,8 +526,14 @@ def summary_table(metrics: dict, out_dir: Path | None = None) -> str:
              ("max jump", f"{m['max_jump_m']:.3f} m between consecutive estimates"),
              ("sensor update", f"median {_fmt(m['sensor_update_ms']['median_ms'], '.1f')} ms, "
                                f"p95 {_fmt(m['sensor_update_ms']['p95_ms'], '.1f')} ms "
-                               f"({m['num_particles']} particles x {m['num_beams_per_particle']} beams, "
-                               f"{m['ray_caster']})"),
+                               + ("(adaptive particles" if m.get("adaptive_particles")
+                                  else f"({m['num_particles']} particles")
+                               + f" x {m['num_beams_per_particle']} beams, "
+                               + (f"{m['ray_caster']})" if m.get("sensor_model", "beam") == "beam"
+                                  else f"{m['sensor_model']})")),
+             ("particles", "n/a" if not m.get("particles") else
+              f"min {m['particles']['min']}  median {m['particles']['median']:.0f}  max {m['particles']['max']}"
+              + (" (adaptive, KLD)" if m.get("adaptive_particles") else "")),
              ("motion update", f"median {_fmt(m['motion_update_ms']['median_ms'], '.2f')} ms, "
                                f"p95 {_fmt(m['motion_update_ms']['p95_ms'], '.2f')} ms"),
              ("update rate", f"{_fmt(m['effective_update_rate_hz'], '.1f')} Hz effective; "

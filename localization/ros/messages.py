@@ -14,7 +14,8 @@ from __future__ import annotations
 import array
 
 import numpy as np
-from geometry_msgs.msg import Pose, Quaternion, TransformStamped
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseWithCovarianceStamped, Quaternion, TransformStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from std_msgs.msg import Float32
 
@@ -67,6 +68,31 @@ def odometry_msg(pose, covariance, stamp, frame_id: str, child_frame_id: str) ->
     msg.child_frame_id = child_frame_id
     msg.pose.pose = pose_msg(pose)
     msg.pose.covariance = covariance_6x6(covariance)
+    return msg
+
+
+def pose_with_covariance_msg(pose, covariance, stamp, frame_id: str) -> PoseWithCovarianceStamped | None:
+    """geometry_msgs/PoseWithCovarianceStamped of the estimate (nav2_amcl's /amcl_pose); None if not finite."""
+    pose = _finite_pose(pose)
+    if pose is None:
+        return None
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = time_msg(stamp)
+    msg.header.frame_id = frame_id
+    msg.pose.pose = pose_msg(pose)
+    msg.pose.covariance = covariance_6x6(covariance)
+    return msg
+
+
+def diagnostic_array_msg(status, stamp, name: str, hardware_id: str = "") -> DiagnosticArray:
+    """diagnostic_msgs/DiagnosticArray with one DiagnosticStatus from a ``core.watchdog.Status``."""
+    msg = DiagnosticArray()
+    msg.header.stamp = time_msg(stamp)
+    level = int(min(max(status.level, 0), 3))
+    item = DiagnosticStatus(level=level.to_bytes(1, "little"), name=name, message=str(status.message),
+                            hardware_id=hardware_id)
+    item.values = [KeyValue(key=str(k), value=str(v)) for k, v in status.values.items()]
+    msg.status = [item]
     return msg
 
 

@@ -1,36 +1,55 @@
 """The ``particle_filter`` ROS 2 node: wiring only (ROS messages -> converters -> Localizer ->
 message builders -> ROS messages). See docs/node.md for topics, frames and parameters.
 
-    ros2 run localization particle_filter --ros-args --params-file config/params.yaml
+    ros2 run localization particle_filter --ros-args --params-file config/real_params.yaml
     python -m localization.particle_filter --ros-args -p num_particles:=500
+    particle_filter --help
 
-Threading: a SingleThreadedExecutor runs every subscription callback (each is short); the scan
-callback only leaves the message in the one-slot mailbox of the sensor-update thread
-(``scan_worker.LatestScanWorker``), which runs the sensor update and publishes its outputs. So a
-slow sensor update never delays the pose published on odometry (the Localizer queues odometry
-that arrives during a sensor update), and a scan that waited behind a slow update is replaced by
-the newer one instead of queueing. Why not rclpy's MultiThreadedExecutor: docs/node.md.
+``LocalizationMixin`` holds the wiring, in the four steps of a lifecycle node: ``_configure``
+(localizer, publishers, services, worker threads), ``_activate`` (subscriptions, timers),
+``_deactivate``, ``_cleanup``. ``ParticleFilterNode`` runs them all at construction;
+``localization.ros.lifecycle_node`` maps them onto configure/activate/deactivate/cleanup.
+
+Threading: a SingleThreadedExecutor runs every subscription callback (each is short). The scan
+callback only queues the message for the sensor-update thread (``scan_worker.ScanQueueWorker``: a
+short FIFO, so a briefly late update catches up instead of losing scans), which runs the sensor
+update and publishes its outputs; a slow sensor update never delays the pose published on
+odometry (the Localizer queues odometry that arrives during an update). A map whose lookup-table
+ray caster needs a range table (built, or loaded from the disk cache) is prepared on a third
+thread; meanwhile inputs are counted as waiting for the table and the odometry reference keeps
+moving, and the first pose goes out as soon as the table is ready. Why not rclpy's
+MultiThreadedExecutor: docs/node.md.
+
+Watchdogs: ``core.watchdog.Watchdog`` records every input; a timer publishes its status on
+/diagnostics and logs each problem (no odometry while scans arrive, no scans, no map, TF) when it
+appears and every 5 s while it lasts.
 """
 from __future__ import annotations
 
 import functools
+import os
 import sys
 import threading
+import time
 from collections import Counter
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import LaserScan
 from std_msgs.msg import Float32
 from std_srvs.srv import Empty
 
+from localization.core import pose_store
 from localization.core.localizer import Localizer, PoseEstimate
 from localization.core.occupancy_map import MapError, OccupancyMap
-from localization.core.parameters import NODE_NAME, ParameterError
+from localization.core.parameters import NODE_NAME, PARAMETERS, ParameterError
+from localization.core.watchdog import LEVEL_NAMES, ProblemLog, Watchdog
 from localization.ros import messages
 from localization.ros.conversions import (
     pose_from_msg,
@@ -40,14 +59,27 @@ from localization.ros.conversions import (
 )
 from localization.ros.logging_bridge import stdlib_logger
 from localization.ros.parameters import MAP_QOS, ODOM_QOS, QOS_OVERRIDES, SCAN_QOS, declare_parameters
-from localization.ros.scan_worker import LatestScanWorker
+from localization.ros.scan_worker import ScanQueueWorker
 from localization.ros.stamps import StampBook
 from localization.ros.tf_broadcaster import TransformBroadcaster
 
-POSE_TOPIC = "/pf/pose/odom"
+ODOM_POSE_TOPIC = "/pf/pose/odom"  # nav_msgs/Odometry (the course's output)
+POSE_TOPIC = ODOM_POSE_TOPIC  # backwards-compatible name
 PARTICLES_TOPIC = "/pf/particles"
 HEALTH_TOPIC = "/pf/health"  # std_msgs/Float32: scan-map agreement of the estimate (localization.health)
+DIAGNOSTICS_TOPIC = "/diagnostics"
 TIME_JUMP = 1.0  # seconds: data stamps this far back (a bag replayed again) restart the TF stamps
+TABLE_KINDS = ("lookup_table", "lookup_table_exact")  # ray casters whose map set-up builds a range table
+# seconds per (free cell x heading) ray of a range-table build, per core (the estimate in the log line)
+TABLE_SECONDS_PER_RAY = 2.5e-7
+GIL_SWITCH_INTERVAL_S = 0.0005  # see spin_node
+ODOMETRY_TYPE, SCAN_TYPE = "nav_msgs/msg/Odometry", "sensor_msgs/msg/LaserScan"
+
+
+def _subscribed(publisher) -> bool:
+    """Whether anyone listens (True for stand-ins without the count, e.g. test recorders)."""
+    count = getattr(publisher, "get_subscription_count", None)
+    return count is None or count() > 0
 
 
 def _counted(key: str):
@@ -63,63 +95,236 @@ def _counted(key: str):
     return decorate
 
 
-class ParticleFilterNode(Node):
-    def __init__(self, **node_kwargs):
-        super().__init__(NODE_NAME, **node_kwargs)
+class LocalizationMixin:
+    """The node's wiring, for ``rclpy.node.Node`` and ``rclpy.lifecycle.LifecycleNode`` alike."""
+
+    # ------------------------------------------------------------------ set-up steps
+    def _declare(self) -> None:
         try:
             self.params = declare_parameters(self)
         except ParameterError as exc:
             self.get_logger().fatal(str(exc))
-            self.destroy_node()
             raise
+        self.counts = Counter()  # messages handled per input (diagnostics, tests)
+        self.localizer = None
+        self.scan_worker = self.map_worker = None
+        self._pf_subs, self._pf_timers = [], []
+        self._configured = False
+
+    def _configure(self) -> None:
         p = self.params
         self.localizer = Localizer(p, stdlib_logger(self))
-        self.counts = Counter()  # messages handled per input (diagnostics, tests)
         self.stamps = StampBook()
+        self.watchdog = Watchdog(time.monotonic(), odom_timeout=p.odom_timeout, scan_timeout=p.scan_timeout,
+                                 map_timeout=p.map_timeout, tf_timeout=p.tf_timeout, scan_topic=p.scan_topic,
+                                 odom_topic=p.odom_topic, map_topic=p.map_topic)
+        self.problem_log = ProblemLog()
         self._odom_lock = threading.Lock()  # pairs the estimate with the odometry pose (map -> odom)
         self._odom_pose = None
         self._tf_lock = threading.Lock()
         self._last_tf_stamp = -np.inf
         self._last_data_stamp = None
+        self._map_generation = 0
+        self._laser_source = None  # "tf" | "parameters" once decided
+        self._laser_lookup = None
+        self._last_persisted = None
 
-        self.pose_pub = self.create_publisher(Odometry, POSE_TOPIC, 10)
+        self.pose_pub = self.create_publisher(Odometry, ODOM_POSE_TOPIC, 10)
+        self.pose_cov_pub = self.create_publisher(PoseWithCovarianceStamped, p.pose_topic, 10)
         self.particles_pub = self.create_publisher(PoseArray, PARTICLES_TOPIC, 5)
         self.health_pub = self.create_publisher(Float32, HEALTH_TOPIC, 10)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
-        self.scan_worker = LatestScanWorker(self.process_scan, self.get_logger().error)
-        self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS)
-        self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10)
-        self.create_subscription(LaserScan, p.scan_topic, self.on_scan, SCAN_QOS,
-                                 qos_overriding_options=QOS_OVERRIDES)
-        self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS,
-                                 qos_overriding_options=QOS_OVERRIDES)
-        self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global)
+        self.scan_worker = ScanQueueWorker(self.process_scan, self.get_logger().error)
+        self.map_worker = ScanQueueWorker(self._install_map, self.get_logger().error, name="map_preparation",
+                                          depth=1)
+        self._pf_services = [
+            self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global),
+            self.create_service(Empty, "request_nomotion_update", self.on_request_nomotion_update),
+        ]
+        self._initial_pose_at_start()
+        self._configured = True
+
+    def _activate(self) -> None:
+        p = self.params
+        self._pf_subs = [
+            self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS),
+            self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10),
+            # raw: the CDR bytes are deserialized on the sensor-update thread, not the executor's
+            self.create_subscription(LaserScan, p.scan_topic, self.on_scan, SCAN_QOS,
+                                     qos_overriding_options=QOS_OVERRIDES, raw=True),
+            self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS,
+                                     qos_overriding_options=QOS_OVERRIDES),
+        ]
+        if p.laser_pose_from_tf and self._laser_source != "tf":
+            try:
+                from localization.ros.laser_tf import LaserPoseLookup
+                own = p.odom_frame if p.publish_tf == "map_to_odom" else p.particle_filter_frame
+                self._laser_lookup = LaserPoseLookup(self, ignore_children={own})
+            except ImportError as exc:
+                self.get_logger().warning(f"laser pose: TF not available ({exc}); using laser_offset_* parameters")
+                self._laser_source = "parameters"
+        self._pf_timers = [self.create_timer(p.diagnostics_period, self.publish_diagnostics)]
+        if p.persist_pose:
+            self._pf_timers.append(self.create_timer(p.persist_pose_period, self.persist_pose))
+        self.watchdog.start = time.monotonic()
         self.get_logger().info(
             f"particle filter ready for input: {p.num_particles} particles, map {p.map_topic}, scans "
-            f"{p.scan_topic}, odometry {p.odom_topic}; publishing {POSE_TOPIC}, {PARTICLES_TOPIC}, {HEALTH_TOPIC}, "
-            f"TF {p.publish_tf}")
+            f"{p.scan_topic}, odometry {p.odom_topic}; publishing {p.pose_topic}, {ODOM_POSE_TOPIC}, "
+            f"{PARTICLES_TOPIC}, {HEALTH_TOPIC}, {DIAGNOSTICS_TOPIC}, TF {p.publish_tf}")
+
+    def _deactivate(self) -> None:
+        for sub in self._pf_subs:
+            self.destroy_subscription(sub)
+        for timer in self._pf_timers:
+            self.destroy_timer(timer)
+        self._pf_subs, self._pf_timers = [], []
+        if self._laser_lookup is not None:
+            self._laser_lookup.close()
+            self._laser_lookup = None
+
+    def _cleanup(self) -> None:
+        for worker in (self.map_worker, self.scan_worker):
+            if worker is not None:
+                worker.stop()  # no sensor update publishes through a destroyed node
+        if self.scan_worker is not None:
+            self.get_logger().info(
+                f"scans: {self.counts['scan_received']} received, {self.counts['scan']} processed "
+                f"({self.watchdog.sensor_updates} sensor updates, {self.watchdog.scans_waiting_for_table} while "
+                f"the range table was prepared), {self.scan_worker.dropped} dropped (queue full); scan -> pose: "
+                f"{self.watchdog.run_summary()}")
+        if self.localizer is not None and self.params.persist_pose:
+            self.persist_pose()
+        if not self._configured:
+            return
+        from rclpy.publisher import Publisher
+        for pub in (self.pose_pub, self.pose_cov_pub, self.particles_pub, self.health_pub, self.diagnostics_pub):
+            if isinstance(pub, Publisher):  # tests may have swapped in recorders
+                self.destroy_publisher(pub)
+        if isinstance(self.tf, TransformBroadcaster):
+            self.tf.destroy()
+        for srv in self._pf_services:
+            self.destroy_service(srv)
+        self.scan_worker = self.map_worker = None
+        self._configured = False
+
+    def _initial_pose_at_start(self) -> None:
+        """nav2-style ``set_initial_pose`` + ``initial_pose.*``, else the persisted pose (opt-in)."""
+        p = self.params
+        if p.set_initial_pose:
+            pose = np.array([p["initial_pose.x"], p["initial_pose.y"], p["initial_pose.yaw"]])
+            if self.localizer.set_initial_pose(pose, None, 0.0):
+                self.get_logger().info(f"initial pose from parameters ({pose[0]:.2f}, {pose[1]:.2f}, "
+                                       f"{pose[2]:.2f}): localizing once a map arrives")
+            return
+        if not p.persist_pose or p.global_localization:
+            return
+        path = pose_store.pose_file(p.persist_pose_file)
+        stored, why = pose_store.load_pose(path)
+        if stored is None:
+            self.get_logger().info(f"{why}: waiting for an initial pose")
+            return
+        if stored.frame_id not in ("", p.map_frame):
+            self.get_logger().warning(f"persisted pose {path} is in frame {stored.frame_id!r}, not "
+                                      f"{p.map_frame!r}: ignored")
+            return
+        if self.localizer.set_initial_pose(stored.pose, stored.covariance, 0.0):
+            x, y, th = stored.pose
+            self.get_logger().info(f"initial pose from the persisted pose {path} ({x:.2f}, {y:.2f}, {th:.2f})")
 
     # ------------------------------------------------------------------ inputs
-    @_counted("map")
     def on_map(self, msg: OccupancyGrid) -> None:
         try:
             occupancy_map = OccupancyMap.from_msg(msg)
         except MapError as exc:
             self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
+            self.watchdog.map_failed(time.monotonic(), str(exc))
+            self.counts["map"] += 1
             return
         if occupancy_map.frame_id != self.params.map_frame:
             self.get_logger().warning(f"map frame {occupancy_map.frame_id!r} differs from map_frame "
                                       f"{self.params.map_frame!r}; using it as {self.params.map_frame!r}")
-        replacing = self.localizer.has_map
-        try:
-            self.localizer.set_map(occupancy_map)
-        except MapError as exc:
-            self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
+        if len(occupancy_map.free_cells) == 0:
+            self.get_logger().error(f"map on {self.params.map_topic} rejected: map has no free cell")
+            self.counts["map"] += 1
             return
+        self._map_generation += 1
+        if self.params.sensor_model == "beam" and self.params.ray_caster in TABLE_KINDS:  # seconds: off-thread
+            self.localizer.map_pending = True
+            self._log_table_start(occupancy_map)
+            self.watchdog.map_building(time.monotonic(), "range table")
+            self.map_worker.put((occupancy_map, self._map_generation, msg.header.frame_id))
+        else:
+            self._install_map((occupancy_map, self._map_generation, msg.header.frame_id), time.monotonic())
+
+    def _log_table_start(self, occupancy_map: OccupancyMap) -> None:
+        from localization.core.paths import cache_dir
+        from localization.core.raycast.table_cache import cache_file_name
+        sensor = self.localizer.filter.sensor_model
+        bins = sensor.scan_theta_discretization
+        max_range = sensor.z_max * occupancy_map.resolution * sensor.lidar_scale_to_map_scale
+        cached = (cache_dir() / cache_file_name(occupancy_map, max_range, bins)).is_file()
+        free = int(np.count_nonzero(occupancy_map.free))
+        size = f"map {occupancy_map.width}x{occupancy_map.height} cells ({free} free) x {bins} headings"
+        if cached:
+            self.get_logger().info(f"range table: loading it from the cache for the {size}")
+        else:
+            expected = free * bins * TABLE_SECONDS_PER_RAY / max(1, min(2, os.cpu_count() or 1))
+            self.get_logger().info(f"range table: building it for the {size}, expected ~{expected:.0f} s "
+                                   "(cached for the next start); inputs wait meanwhile")
+
+    def _install_map(self, item, t_put: float) -> None:
+        occupancy_map, generation, frame_id = item
+        t0 = time.monotonic()
+        try:
+            caster = self.localizer.prepare_ray_caster(occupancy_map)
+        except Exception as exc:  # noqa: BLE001 - a map that cannot be prepared is reported, never fatal
+            self.localizer.map_pending = False
+            self.get_logger().error(f"map on {self.params.map_topic} rejected: preparing its ray caster failed: "
+                                    f"{exc!r}")
+            self.watchdog.map_failed(time.monotonic(), repr(exc))
+            self.counts["map"] += 1
+            return
+        if generation != self._map_generation:  # a newer map arrived meanwhile: it will be installed
+            self.counts["map"] += 1
+            return
+        replacing = self.localizer.has_map
+        was_ready = self.localizer.ready
+        try:
+            self.localizer.set_map(occupancy_map, caster)
+        except MapError as exc:
+            self.localizer.map_pending = False
+            self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
+            self.watchdog.map_failed(time.monotonic(), str(exc))
+            self.counts["map"] += 1
+            return
+        self.watchdog.map_ready(time.monotonic())
+        self.watchdog.last_map = time.monotonic()
+        source = getattr(caster, "table_source", None)
+        how = {"built": "built", "disk": "loaded from the cache", "memory": "shared with a map in memory"}.get(
+            source, "")
+        what = f"range table {how} in {time.monotonic() - t0:.1f} s; " if source else ""
         self.get_logger().info(f"{'new ' if replacing else ''}map {occupancy_map.width}x{occupancy_map.height} "
-                               f"cells at {occupancy_map.resolution:.4f} m")
-        if self.localizer.ready and not replacing:  # global localization, or a pose that came first
-            self._publish_particles(self._last_data_stamp or 0.0)
+                               f"cells at {occupancy_map.resolution:.4f} m in frame {frame_id or '(none)'}: "
+                               f"{what}{'localizing' if self.localizer.ready else 'waiting for an initial pose'}")
+        if replacing and was_ready:
+            if self.localizer.ready:
+                self.get_logger().warning(
+                    "new map: the particles are kept where they are (the new map is taken to be in the same "
+                    f"frame {self.params.map_frame!r} as the previous one); if it is not, send an initial pose "
+                    "or call ~/reinitialize_global_localization")
+            else:
+                self.get_logger().warning("new map: no particle lies in its free space: waiting for an initial "
+                                          "pose")
+        if self.localizer.ready:  # the first pose as soon as the map is usable
+            stamp = self._last_data_stamp or 0.0
+            est = self.localizer.estimate
+            if est is not None and not replacing:
+                with self._odom_lock:
+                    odom_pose = self._odom_pose
+                self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
+            self._publish_particles(stamp)
+        self.counts["map"] += 1
 
     @_counted("initialpose")
     def on_initialpose(self, msg: PoseWithCovarianceStamped) -> None:
@@ -145,8 +350,18 @@ class ParticleFilterNode(Node):
             self._publish_particles(stamp)
         return response
 
+    @_counted("nomotion_update")
+    def on_request_nomotion_update(self, request, response):
+        """nav2_amcl's service: the next scan updates the filter although the car has not moved."""
+        self.localizer.request_update()
+        self.get_logger().info("no-motion update requested: the next scan updates the filter")
+        return response
+
     @_counted("odom")
     def on_odometry(self, msg: Odometry) -> None:
+        self.watchdog.odom_received(time.monotonic())
+        if self.localizer.map_pending and not self.localizer.has_map:
+            self.watchdog.odom_waiting_for_table += 1
         twist = twist_from_odometry(msg)
         stamp = self.stamps.remember(msg.header.stamp)
         odom_pose = pose_from_msg(msg.pose.pose)
@@ -157,17 +372,31 @@ class ParticleFilterNode(Node):
         if est is not None:  # None before a map and an initial pose (the Localizer logs that, throttled)
             self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
 
-    def on_scan(self, msg: LaserScan) -> None:
-        """Subscription callback: hand the scan over to the sensor-update thread."""
+    def on_scan(self, msg) -> None:
+        """Subscription callback: hand the scan (serialized bytes, or a message) over to the
+        sensor-update thread."""
         self.counts["scan_received"] += 1
+        self.watchdog.scan_received(time.monotonic())
         self.scan_worker.put(msg)
 
     @_counted("scan")
-    def process_scan(self, msg: LaserScan) -> None:
-        """One scan through the Localizer, then the outputs (the sensor-update thread runs this;
-        tests may call it directly)."""
+    def process_scan(self, msg, t_put: float | None = None) -> None:
+        """One scan (a LaserScan, or its CDR bytes) through the Localizer, then the outputs (the
+        sensor-update thread runs this; tests may call it directly). Times each part for /diagnostics."""
+        t_start = time.monotonic()
+        t_put = t_start if t_put is None else t_put
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            msg = deserialize_message(bytes(msg), LaserScan)
+        t_deser = time.monotonic()
+        if self.localizer.map_pending and not self.localizer.has_map:
+            self.watchdog.scans_waiting_for_table += 1
         stamp = self.stamps.remember(msg.header.stamp)
-        est = self.localizer.on_scan(scan_from_msg(msg))
+        scan = scan_from_msg(msg)
+        if self._laser_source is None or self._laser_source == "parameters" and self._laser_lookup is not None:
+            self._resolve_laser_pose(scan.frame_id, t_start)
+        t_conv = time.monotonic()
+        est = self.localizer.on_scan(scan)
+        t_update = time.monotonic()
         self._last_data_stamp = stamp
         if est is not None:  # None when not ready, or no update was due
             with self._odom_lock:  # an estimate and odometry pose that belong together
@@ -178,14 +407,94 @@ class ParticleFilterNode(Node):
             health = messages.health_msg(self.localizer.health)
             if health is not None:  # NaN while the cloud is still spread (global localization)
                 self.health_pub.publish(health)
+        t_end = time.monotonic()
+        self.watchdog.scan_processed(t_end, est is not None, {
+            "wait": t_start - t_put, "deserialize": t_deser - t_start, "convert": t_conv - t_deser,
+            "update": t_update - t_conv, "publish": t_end - t_update})
 
-    def destroy_node(self):
-        worker = getattr(self, "scan_worker", None)
-        if worker is not None:
-            worker.stop()  # no sensor update publishes through a destroyed node
-            self.get_logger().info(f"scans: {self.counts['scan_received']} received, {self.counts['scan']} "
-                                   f"processed, {worker.dropped} replaced by a newer one while waiting")
-        return super().destroy_node()
+    def _resolve_laser_pose(self, frame_id: str, now: float) -> None:
+        """The laser pose from TF when it is there; after ``tf_timeout`` the parameters (one log line
+        each); a TF arriving later still replaces the parameters."""
+        p = self.params
+        if self._laser_lookup is None:
+            if self._laser_source is None:
+                self._laser_source = "parameters"
+                self.get_logger().info(f"laser pose from the parameters laser_offset_x/y/yaw ({p.laser_offset_x:.3f}, "
+                                       f"{p.laser_offset_y:.3f}, {p.laser_offset_yaw:.3f}) (laser_pose_from_tf false)")
+            return
+        pose, why = self._laser_lookup.lookup(p.base_frame, frame_id)
+        if pose is not None:
+            self.localizer.set_laser_offset(pose)
+            self._laser_source = "tf"
+            self.watchdog.tf_ok()
+            self.get_logger().info(f"laser pose from TF {p.base_frame} -> {frame_id}: ({pose[0]:.3f}, {pose[1]:.3f}, "
+                                   f"{pose[2]:.3f})")
+            lookup, self._laser_lookup = self._laser_lookup, None
+            lookup.close()
+            return
+        first = self.watchdog.first_scan if self.watchdog.first_scan is not None else now
+        if self._laser_source is None and now - first >= p.tf_timeout:
+            self._laser_source = "parameters"
+            self.get_logger().info(f"laser pose from the parameters laser_offset_x/y/yaw ({p.laser_offset_x:.3f}, "
+                                   f"{p.laser_offset_y:.3f}, {p.laser_offset_yaw:.3f}): no TF {why}")
+            self._laser_lookup.stop_dynamic()  # a laser mount is static: only /tf_static from now on
+            if self._laser_lookup.has_data:  # TF is there but this lookup fails: a broken tree
+                self.watchdog.tf_failed(now, f"{why}; using laser_offset_*")
+
+    # ------------------------------------------------------------------ diagnostics and persistence
+    def waiting_for(self) -> str:
+        loc = self.localizer
+        if loc.ready:
+            return ""
+        if not loc.has_map:
+            return "the range table of the map" if loc.map_pending else f"a map on {self.params.map_topic}"
+        return f"an initial pose ({self.params.initialpose_topic}, set_initial_pose or global_localization)"
+
+    def diagnostic_status(self):
+        topics = {}
+        try:
+            for name, types in self.get_topic_names_and_types():
+                for t in types:
+                    topics.setdefault(t, []).append(name)
+        except Exception:  # noqa: BLE001 - a graph query must never break diagnostics
+            pass
+        loc = self.localizer
+        status = self.watchdog.status(
+            time.monotonic(), ready=loc.ready, waiting_for=self.waiting_for(), health=loc.health,
+            particles=loc.filter.num_particles, dropped=self.scan_worker.dropped if self.scan_worker else 0,
+            odom_topics=[t for t in topics.get(ODOMETRY_TYPE, []) if t != ODOM_POSE_TOPIC],
+            scan_topics=topics.get(SCAN_TYPE, []))
+        status.values["laser pose"] = {"tf": f"TF {self.params.base_frame} -> scan frame",
+                                       "parameters": "laser_offset_* parameters"}.get(self._laser_source,
+                                                                                      "not decided yet")
+        status.values["recoveries"] = str(loc.recoveries)
+        return status
+
+    def publish_diagnostics(self) -> None:
+        status = self.diagnostic_status()
+        stamp = self.get_clock().now().nanoseconds * 1e-9
+        self.diagnostics_pub.publish(messages.diagnostic_array_msg(status, stamp, f"{self.get_name()}: localization",
+                                                                   self.get_name()))
+        due, cleared = self.problem_log.due(status.problems, time.monotonic())
+        for problem in due:
+            log = self.get_logger().error if problem.level >= 2 else self.get_logger().warning
+            log(f"{LEVEL_NAMES[problem.level]}: {problem.message}")
+        for key in cleared:
+            self.get_logger().info(f"recovered: {key} cleared")
+
+    def persist_pose(self) -> None:
+        est = self.localizer.estimate if self.localizer is not None else None
+        if est is None or not self.localizer.ready:
+            return
+        key = (float(est.stamp), *np.round(est.pose, 4))
+        if key == self._last_persisted:
+            return
+        path = pose_store.pose_file(self.params.persist_pose_file)
+        try:
+            if pose_store.save_pose(path, est.pose, est.covariance, self.params.map_frame, est.stamp):
+                self._last_persisted = key
+        except OSError as exc:
+            self.get_logger().warning(f"could not persist the pose to {path}: {exc}", throttle_duration_sec=30.0)
 
     # ------------------------------------------------------------------ outputs
     def _publish_pose(self, est, odom_pose, est_with_odom=None) -> None:
@@ -195,6 +504,10 @@ class ParticleFilterNode(Node):
             self.get_logger().warning("non-finite estimate not published", throttle_duration_sec=5.0)
             return
         self.pose_pub.publish(msg)
+        if _subscribed(self.pose_cov_pub):  # building a message nobody reads costs the GIL
+            cov_msg = messages.pose_with_covariance_msg(est.pose, est.covariance, stamp, p.map_frame)
+            if cov_msg is not None:
+                self.pose_cov_pub.publish(cov_msg)
         if self.tf is None:
             return
         if p.publish_tf == "map_to_odom":
@@ -211,30 +524,146 @@ class ParticleFilterNode(Node):
             self.tf.send([tf])
 
     def _publish_particles(self, stamp: float) -> None:
-        if self.params.max_particles_published > 0:
+        if self.params.max_particles_published > 0 and _subscribed(self.particles_pub):
             self.particles_pub.publish(messages.pose_array_cdr(
                 self.localizer.filter.particles, self.stamps.lookup(stamp), self.params.map_frame,
                 self.params.max_particles_published))
 
 
-def main(args=None) -> int:
-    rclpy.init(args=args)
+class ParticleFilterNode(LocalizationMixin, Node):
+    """The plain node: configured and active from construction."""
+
+    def __init__(self, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        try:
+            self._declare()
+        except ParameterError:
+            self.destroy_node()
+            raise
+        self._configure()
+        self._activate()
+
+    def destroy_node(self):
+        if getattr(self, "_configured", False):
+            self._deactivate()
+            self._cleanup()
+        return super().destroy_node()
+
+
+# ---------------------------------------------------------------------------------- command line
+USAGE = """usage: {prog} [-h] [--ros-args --params-file FILE -p NAME:=VALUE ...]
+
+The particle filter localizer node (Monte Carlo localization in a known map).
+
+Inputs: /map (nav_msgs/OccupancyGrid), /scan (sensor_msgs/LaserScan), /odom (nav_msgs/Odometry),
+/initialpose (geometry_msgs/PoseWithCovarianceStamped). Outputs: /pf/pose
+(PoseWithCovarianceStamped), /pf/pose/odom (Odometry), /pf/particles, /pf/health, /diagnostics, TF.
+Services: ~/reinitialize_global_localization, request_nomotion_update (std_srvs/Empty).
+
+--params-file accepts a path or the name of a file in the package's config/ (params, real_params).
+Examples:
+  {prog} --ros-args --params-file real_params -p odom_topic:=/vesc/odom
+  {prog} --ros-args -p set_initial_pose:=true -p initial_pose.x:=1.0 -p initial_pose.y:=2.0
+
+Parameters (name = default):
+{params}
+
+Documentation: docs/node.md in the package.
+"""
+
+
+def usage(prog: str = NODE_NAME) -> str:
+    lines = "\n".join(f"  {p.name} = {p.default!r}" for p in PARAMETERS)
+    return USAGE.format(prog=prog, params=lines)
+
+
+def prepare_args(argv: list[str]) -> tuple[list[str] | None, int | None]:
+    """(arguments for rclpy, None) or (None, exit code) after ``--help`` or a bad ``--params-file``.
+    A ``--params-file`` given by name (``real_params``) is resolved in the package's config/."""
+    from localization.core.paths import resolve_params_path
+    prog = os.path.basename(argv[0]) if argv else NODE_NAME
+    out, inside = list(argv[:1]), False
+    rest = list(argv[1:])
+    i = 0
+    while i < len(rest):
+        arg = rest[i]
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif not inside and arg in ("-h", "--help"):
+            print(usage(prog))
+            return None, 0
+        elif inside and arg == "--params-file":
+            if i + 1 >= len(rest):
+                print(f"{prog}: error: --params-file needs a file", file=sys.stderr)
+                return None, 2
+            path = resolve_params_path(rest[i + 1])
+            if not path.is_file():
+                print(f"{prog}: error: parameter file not found: {rest[i + 1]} (a path, or a name in "
+                      f"{path.parent})", file=sys.stderr)
+                return None, 1
+            out += [arg, str(path)]
+            i += 2
+            continue
+        out.append(arg)
+        i += 1
+    return out, None
+
+
+def spin_node(node_factory, args=None) -> int:
+    """Init rclpy (with our own SIGINT/SIGTERM handling, so the context is still valid while the node
+    shuts down and logs), spin ``node_factory()``, shut down cleanly."""
+    import signal
+
+    from rclpy.signals import SignalHandlerOptions
+
+    argv = list(sys.argv if args is None else args)
+    argv, code = prepare_args(argv)
+    if argv is None:
+        return code
+    # The executor thread and the sensor-update thread share the GIL: a thread waiting for it gets it
+    # after at most the switch interval (5 ms by default), a direct addition to the scan -> pose latency.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     try:
-        node = ParticleFilterNode()
-    except ParameterError:
-        rclpy.try_shutdown()
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as exc:  # noqa: BLE001 - e.g. a malformed --ros-args: one line, no traceback
+        print(f"{NODE_NAME}: error: {exc}".splitlines()[0], file=sys.stderr)
         return 1
     executor = SingleThreadedExecutor()
-    executor.add_node(node)
+    stop = threading.Event()
+    spinning = threading.Event()
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        stop.set()
+        if spinning.is_set():  # before that, the node is built completely, then not spun
+            raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    node = None
     try:
-        executor.spin()
+        try:
+            node = node_factory()
+        except ParameterError:
+            return 1
+        executor.add_node(node)
+        spinning.set()
+        if not stop.is_set():
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
         executor.shutdown()
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def main(args=None) -> int:
+    return spin_node(ParticleFilterNode, args)
 
 
 if __name__ == "__main__":

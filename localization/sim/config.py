@@ -34,14 +34,16 @@ class SimConfig:
     start: tuple = (-6.6, 20.5, -2.24)  # true start pose of base_link (x, y, yaw)
     waypoints: tuple = ()  # route ((x, y), ...); the car drives from ``start`` through these
     closed: bool = False  # route is a loop: keep driving until ``duration``
-    speed: float = 2.0  # cruise speed (m/s)
+    speed: float = 2.0  # cruise speed (m/s), at most car.max_speed
     duration: float | None = None  # seconds; None: until the end of an open route
     seed: int = 0
     # odometry
     odom_rate: float = 50.0
     odom_noise: float = 0.0  # std of the Gaussian noise added to each of vx, vy (m/s) and ωz (rad/s)
     speed_scale: float = 1.0  # reported vx = speed_scale · true vx (+ noise): e.g. 0.95 runs 5 % short
+    yaw_rate_scale: float = 1.0  # reported ωz = yaw_rate_scale · true ωz + yaw_rate_bias (+ noise)
     yaw_rate_bias: float = 0.0  # rad/s added to the reported ωz
+    odom_latency: float = 0.0  # s: the message stamped t reports the twist of the period ending at t − latency
     # lidar
     scan_rate: float = 40.0
     num_beams: int = 1081
@@ -50,6 +52,9 @@ class SimConfig:
     range_min: float = 0.02
     range_max: float = 10.0
     range_noise: float = 0.01  # std (m) of the Gaussian range noise
+    range_scale: float = 1.0  # reported range = range_scale · true range (+ noise)
+    sweep: bool = False  # beam i measured at stamp + i · time_increment while the car moves (UST-10LX)
+    laser_offset: tuple = (0.275, 0.0, 0.0)  # laser pose (x, y, yaw) in base_link (m, m, rad)
     # ground truth and initial pose
     initial_pose: bool = True  # record /initialpose
     initial_offset: tuple = (0.3, 0.4, 0.2)  # /initialpose = true start + this (map frame dx, dy, dyaw)

@@ -34,6 +34,7 @@ class Recording:
     scan_t: np.ndarray  # (S,) seconds
     scan_ranges: np.ndarray  # (S, beams) float32
     scan_angle_increment: float
+    scan_time_increment: float  # s between beams (0: the whole scan at its stamp)
     truth_t: np.ndarray  # times of the /tf ground truth (every odom and scan stamp)
     truth_poses: np.ndarray
     initial_pose: np.ndarray | None  # what /initialpose says
@@ -57,7 +58,10 @@ def simulate(cfg: SimConfig, occupancy_map: OccupancyMap | None = None) -> Recor
         raise SimulationError(f"scan_rate must divide {PHYSICS_RATE_HZ} Hz, got {cfg.scan_rate}")
     scan_steps = np.arange(0, len(traj.t), int(round(per)))
     lidar = Lidar(occupancy_map, cfg, scan_rng)
-    ranges = lidar.scan(traj.poses[scan_steps])
+    if cfg.sweep:
+        ranges = lidar.scan_swept(traj, traj.t[scan_steps])
+    else:
+        ranges = lidar.scan(traj.poses[scan_steps])
 
     odom_steps = np.rint(odom.t * PHYSICS_RATE_HZ).astype(int)
     truth_steps = np.union1d(scan_steps, odom_steps)
@@ -65,7 +69,7 @@ def simulate(cfg: SimConfig, occupancy_map: OccupancyMap | None = None) -> Recor
     if cfg.initial_pose:
         initial = np.asarray(cfg.start, dtype=float) + np.asarray(cfg.initial_offset, dtype=float)
         initial[2] = wrap_angle(initial[2])
-    return Recording(cfg, traj, odom, traj.t[scan_steps], ranges, lidar.angle_increment,
+    return Recording(cfg, traj, odom, traj.t[scan_steps], ranges, lidar.angle_increment, lidar.time_increment,
                      traj.t[truth_steps], traj.poses[truth_steps], initial)
 
 
@@ -97,7 +101,8 @@ def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = 
         w.add_topic("/odom", "nav_msgs/msg/Odometry")
         w.add_topic("/scan", "sensor_msgs/msg/LaserScan", qos="sensor_data")
         w.write("/tf_static", T0_NS, make_tf_message(ts, [make_transform_stamped(
-            ts, T0_NS, "base_link", "laser", x=cfg.car.laser_offset_x)]))
+            ts, T0_NS, "base_link", "laser", x=cfg.laser_offset[0], y=cfg.laser_offset[1],
+            yaw=cfg.laser_offset[2])]))
         x, y, th = rec.trajectory.poses[0]  # the car waits at its start pose until the sensors start
         w.write("/tf", T0_NS, make_tf_message(ts, [make_transform_stamped(ts, T0_NS, "map", "base_link",
                                                                           x=x, y=y, yaw=th)]))
@@ -118,7 +123,7 @@ def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = 
                 w.write("/scan", t_ns, make_laser_scan(
                     ts, t_ns, "laser", rec.scan_ranges[k], angle_min=cfg.angle_min, angle_max=cfg.angle_max,
                     angle_increment=rec.scan_angle_increment, range_min=cfg.range_min, range_max=cfg.range_max,
-                    scan_time=1.0 / cfg.scan_rate))
+                    time_increment=rec.scan_time_increment, scan_time=1.0 / cfg.scan_rate))
     return Path(path)
 
 

@@ -2,6 +2,7 @@
 (noise, scale and bias) derived from the true trajectory."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,33 +19,58 @@ from localization.sim.trajectory import Trajectory
 
 
 class Lidar:
-    """A Hokuyo UST-10LX-like planar lidar at ``offset_x`` ahead of base_link.
+    """A Hokuyo UST-10LX-like planar lidar at ``cfg.laser_offset`` (x, y, yaw) in base_link.
 
     Each beam's range is the exact ray-cast distance from the laser to the first cell that is
-    not known free (``ExactRayCaster``), plus Gaussian noise::
+    not known free (``ExactRayCaster``), scaled and with Gaussian noise::
 
-        z = clip(d + N(0, σ²), range_min, range_max)
+        z = clip(s · d + N(0, σ²), range_min, range_max)           s = range_scale
 
     Rays that hit nothing within ``range_max`` read ``range_max`` (as the racecar simulator).
+
+    Sweep timing (``cfg.sweep``): the mirror turns once per scan period, so beam i is measured at
+    ``stamp + i · Δt`` with ``Δt = (angle_increment / 2π) / scan_rate`` (1081 beams over 270° at
+    40 Hz: 17.36 µs, 18.75 ms for the sweep); each beam is cast from the true laser pose at its
+    own time (``scan_swept``). The header stamp is the first beam's time (the LaserScan convention).
     """
 
     def __init__(self, occupancy_map: OccupancyMap, cfg: SimConfig, rng: np.random.Generator):
         self.angles = np.linspace(cfg.angle_min, cfg.angle_max, cfg.num_beams)
         self.angle_increment = (cfg.angle_max - cfg.angle_min) / max(cfg.num_beams - 1, 1)
+        self.time_increment = (self.angle_increment / (2.0 * math.pi)) / cfg.scan_rate if cfg.sweep else 0.0
         self.cfg = cfg
-        self.offset = np.array([cfg.car.laser_offset_x, 0.0, 0.0])
+        self.offset = np.asarray(cfg.laser_offset, dtype=float)
         self.caster = ExactRayCaster(occupancy_map, cfg.range_max)
         self.rng = rng
 
+    def _measure(self, d: np.ndarray) -> np.ndarray:
+        z = d * self.cfg.range_scale + self.rng.standard_normal(d.shape) * self.cfg.range_noise
+        return np.clip(z, self.cfg.range_min, self.cfg.range_max)
+
     def scan(self, base_poses, batch: int = 64) -> np.ndarray:
-        """Ranges (M, num_beams) float32 for M base_link poses (cast ``batch`` scans at a time)."""
+        """Ranges (M, num_beams) float32 for M base_link poses, every beam at once (cast
+        ``batch`` scans at a time)."""
         base_poses = np.atleast_2d(base_poses)
         out = np.empty((len(base_poses), self.angles.size), dtype=np.float32)
         for a in range(0, len(base_poses), batch):
             laser = compose(base_poses[a:a + batch], self.offset)
-            d = self.caster.cast(laser, self.angles)
-            z = d + self.rng.standard_normal(d.shape) * self.cfg.range_noise
-            out[a:a + batch] = np.clip(z, self.cfg.range_min, self.cfg.range_max)
+            out[a:a + batch] = self._measure(self.caster.cast(laser, self.angles))
+        return out
+
+    def beam_times(self, stamps) -> np.ndarray:
+        """(M, num_beams) time of each beam of the scans stamped ``stamps`` (first beam)."""
+        return np.asarray(stamps, dtype=float)[:, None] + np.arange(self.angles.size) * self.time_increment
+
+    def scan_swept(self, traj: Trajectory, stamps, batch: int = 32) -> np.ndarray:
+        """Ranges (M, num_beams) float32 of scans stamped ``stamps`` (s), each beam cast from the
+        true laser pose at its own time (``beam_times``) along ``traj``."""
+        stamps = np.asarray(stamps, dtype=float)
+        out = np.empty((len(stamps), self.angles.size), dtype=np.float32)
+        for a in range(0, len(stamps), batch):
+            laser = compose(traj.pose_at(self.beam_times(stamps[a:a + batch])), self.offset)
+            angles = np.broadcast_to(self.angles, laser.shape[:-1])
+            d = self.caster.cast_rays(laser.reshape(-1, 3), angles.ravel()).reshape(laser.shape[:-1])
+            out[a:a + batch] = self._measure(d)
         return out
 
 
@@ -64,13 +90,15 @@ class OdometryStream:
 def odometry_from_trajectory(traj: Trajectory, cfg: SimConfig, rng: np.random.Generator) -> OdometryStream:
     """Odometry messages at ``odom_rate``: message k reports the twist over the period that
     ends at its stamp (the convention of the localizer: the twist of message k times the
-    time since message k−1 is the motion between them).
+    time since message k−1 is the motion between them) — or, with ``odom_latency`` L, the
+    period ending at t_k − L (the twist reported late; the car stands before t = 0).
 
-    True twist over the period = mean of the physics-step twists (v, 0, w). Reported::
+    True twist over the period (a, b] = mean of the physics-step twists (v, 0, w) over it
+    (an exact integral of the piecewise-constant speed and yaw rate). Reported::
 
         vx = speed_scale · v̄ + N(0, k²)
         vy =                 N(0, k²)            k = odom_noise (Table 1 of the lab report)
-        ωz = w̄ + yaw_rate_bias + N(0, k²)
+        ωz = yaw_rate_scale · w̄ + yaw_rate_bias + N(0, k²)
 
     and the odometry pose integrates the *reported* twist from (0, 0, 0) in frame ``odom``."""
     per = PHYSICS_RATE_HZ / cfg.odom_rate
@@ -79,15 +107,32 @@ def odometry_from_trajectory(traj: Trajectory, cfg: SimConfig, rng: np.random.Ge
     per = int(round(per))
     n_steps = len(traj.v)
     m = n_steps // per + 1  # message 0 at t = 0 (standing), then one every ``per`` steps
+    t = np.arange(m) * per / PHYSICS_RATE_HZ
     true_twist = np.zeros((m, 3))
-    if m > 1:
-        true_twist[1:, 0] = traj.v[:(m - 1) * per].reshape(m - 1, per).mean(axis=1)
-        true_twist[1:, 2] = traj.w[:(m - 1) * per].reshape(m - 1, per).mean(axis=1)
+    if cfg.odom_latency == 0.0:
+        if m > 1:
+            true_twist[1:, 0] = traj.v[:(m - 1) * per].reshape(m - 1, per).mean(axis=1)
+            true_twist[1:, 2] = traj.w[:(m - 1) * per].reshape(m - 1, per).mean(axis=1)
+    else:
+        period = 1.0 / cfg.odom_rate
+        b = t - cfg.odom_latency
+        for col, rate in ((0, traj.v), (2, traj.w)):
+            true_twist[:, col] = (_integral(traj, rate, b) - _integral(traj, rate, b - period)) / period
     noise = rng.standard_normal((m, 3)) * cfg.odom_noise
-    twist = true_twist * np.array([cfg.speed_scale, 1.0, 1.0]) + noise
+    twist = true_twist * np.array([cfg.speed_scale, 1.0, cfg.yaw_rate_scale]) + noise
     twist[:, 2] += cfg.yaw_rate_bias
     period = 1.0 / cfg.odom_rate
     pose = np.zeros((m, 3))
     for k in range(1, m):
         pose[k] = compose(pose[k - 1], integrate_twist(*twist[k], period))
-    return OdometryStream(np.arange(m) * per / PHYSICS_RATE_HZ, twist, pose, true_twist)
+    return OdometryStream(t, twist, pose, true_twist)
+
+
+def _integral(traj: Trajectory, rate: np.ndarray, t) -> np.ndarray:
+    """∫_0^t rate dt' of a piecewise-constant per-step rate (0 before the start, the last value
+    held after the end)."""
+    dt = 1.0 / PHYSICS_RATE_HZ
+    cum = np.concatenate([[0.0], np.cumsum(rate) * dt])
+    t = np.maximum(np.asarray(t, dtype=float), 0.0)
+    i = np.minimum(np.floor(t / dt).astype(np.int64), len(rate) - 1)
+    return cum[i] + rate[i] * (t - i * dt)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.geometry import compose, integrate_twist
+from localization.core.geometry import compose, integrate_twist, integrate_twists
 from localization.core.occupancy_map import OccupancyMap
 from localization.sim.config import PHYSICS_RATE_HZ, SimConfig, SimulationError
 from localization.sim.vehicle import RouteFollower
@@ -28,6 +28,15 @@ class Trajectory:
     min_clearance: float  # smallest distance (m) from a collision circle centre to a wall
     route_length: float
     kidnapped_at_step: int | None = None
+
+    def pose_at(self, t) -> np.ndarray:
+        """True pose (..., 3) at any times ``t`` (s): the constant-twist arc of the physics step
+        holding t, from its start pose (clamped to the trajectory's span)."""
+        t = np.asarray(t, dtype=float)
+        dt = 1.0 / PHYSICS_RATE_HZ
+        i = np.clip(np.floor(t / dt + 1e-9).astype(np.int64), 0, len(self.v) - 1)
+        tau = np.clip(t - self.t[i], 0.0, dt)
+        return compose(self.poses[i], integrate_twists(self.v[i], 0.0, self.w[i], tau))
 
 
 def clearance_grid(occupancy_map: OccupancyMap) -> np.ndarray:

@@ -29,15 +29,17 @@ class CarModel:
 
     With v and δ constant over a step dt the car drives an arc of curvature κ = tan(δ)/L,
     integrated exactly (``step``). Commands are limited like the real car: |v| ≤ max_speed,
-    |δ| ≤ max_steer, |dv/dt| ≤ max_accel, |dδ/dt| ≤ max_steer_rate.
+    |δ| ≤ max_steer, |dv/dt| ≤ max_accel, |dδ/dt| ≤ max_steer_rate. With a finite
+    ``max_lateral_accel`` the route follower also plans its speed so that v² κ ≤ max_lateral_accel
+    on the route ahead (needed at 6–8 m/s; ``inf``, the default, keeps the slow trials' speed law).
     """
 
     wheelbase: float = 0.325  # m
-    max_speed: float = 4.0  # m/s
+    max_speed: float = 8.0  # m/s (an F1TENTH car on a long straight)
     max_steer: float = 0.34  # rad
     max_accel: float = 3.0  # m/s²
     max_steer_rate: float = 3.2  # rad/s
-    laser_offset_x: float = 0.275  # lidar ahead of the rear axle (m)
+    max_lateral_accel: float = math.inf  # m/s² (v² κ); inf: no speed planning for curvature
     radius: float = 0.18  # collision circles of this radius at the rear and front axle (m)
 
     def yaw_rate(self, v: float, steer: float) -> float:
@@ -99,6 +101,12 @@ class RouteFollower:
 
         v_cmd = speed · (1 − turn_slowdown · |δ| / max_steer)
         v_cmd = min(v_cmd, sqrt(2 · a_max · distance_to_end))
+
+    With a finite ``car.max_lateral_accel`` a_lat, also the planned speed at the nearest path
+    point (``speed_profile``): the route's curvature κ_i (heading change over ±1 m), the cornering
+    limit sqrt(a_lat / κ_i), and a backward pass so the car can brake in time (at 0.8 a_max)::
+
+        v_i = min(sqrt(a_lat / κ_i), sqrt(v_{i+1}² + 2 · 0.8 a_max · Δs))
     """
 
     def __init__(self, waypoints, closed: bool = False, lookahead_min: float = 0.9, lookahead_gain: float = 0.3,
@@ -117,6 +125,38 @@ class RouteFollower:
         self.turn_slowdown = turn_slowdown
         self.index = 0
         self.travelled = 0.0  # arc length progressed along the route (grows past ``length`` on loops)
+        self._profile: tuple[tuple[float, float], np.ndarray] | None = None
+
+    def speed_profile(self, car: CarModel, window_m: float = 1.0) -> np.ndarray:
+        """Planned speed limit (m/s) at every path point for ``car`` (inf everywhere without a
+        lateral-acceleration limit)."""
+        key = (car.max_lateral_accel, car.max_accel)
+        if self._profile is not None and self._profile[0] == key:
+            return self._profile[1]
+        n = len(self.path)
+        if not math.isfinite(car.max_lateral_accel):
+            limit = np.full(n, math.inf)
+        else:
+            d = np.diff(self.path, axis=0, append=self.path[:1] if self.closed else self.path[-1:])
+            if not self.closed:
+                d[-1] = d[-2]
+            heading = np.arctan2(d[:, 1], d[:, 0])
+            m = max(1, int(round(window_m / self.spacing)))
+            k = np.arange(n)
+            ahead, behind = k + m, k - m
+            if self.closed:
+                ahead, behind = ahead % n, behind % n
+            else:
+                ahead, behind = np.minimum(ahead, n - 1), np.maximum(behind, 0)
+            kappa = np.abs(wrap_angle(heading[ahead] - heading[behind])) / (2 * m * self.spacing)
+            limit = np.sqrt(car.max_lateral_accel / np.maximum(kappa, 1e-9))
+            brake = 0.8 * car.max_accel
+            for _ in range(2 if self.closed else 1):  # a loop: the wrap-around needs a second pass
+                for i in range(n - 2, -1, -1) if not self.closed else range(n - 1, -1, -1):
+                    j = (i + 1) % n
+                    limit[i] = min(limit[i], math.sqrt(limit[j] ** 2 + 2.0 * brake * self.spacing))
+        self._profile = (key, limit)
+        return limit
 
     def reset_to_nearest(self, xy) -> None:
         """Continue from the route point nearest to ``xy`` (start, or after a kidnapping)."""
@@ -156,4 +196,6 @@ class RouteFollower:
         v_cmd = speed * (1.0 - self.turn_slowdown * abs(steer) / car.max_steer)
         if not self.closed:
             v_cmd = min(v_cmd, math.sqrt(2.0 * car.max_accel * 0.5 * max(self.distance_to_end() - 0.05, 0.0)))
+        if math.isfinite(car.max_lateral_accel):
+            v_cmd = min(v_cmd, float(self.speed_profile(car)[self.index]))
         return v_cmd, steer

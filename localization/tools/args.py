@@ -31,6 +31,19 @@ def pose(text: str) -> tuple:
         raise argparse.ArgumentTypeError(f"expected X,Y,YAW (three numbers), got {text!r}") from None
 
 
+IMAGE_SUFFIXES = (".png", ".pgm", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def map_name_or_yaml(text: str) -> str:
+    """``--map``: a map_server YAML or a map name; the map's image is refused with the YAML to give."""
+    suffix = Path(text).suffix.lower()
+    if suffix in IMAGE_SUFFIXES:
+        stem = text[: -len(suffix)]
+        raise argparse.ArgumentTypeError(f"{text} is the map's image: give its map_server YAML ({stem}.yaml) or "
+                                         f"the map name ({Path(stem).name})")
+    return text
+
+
 def positive_float(text: str) -> float:
     try:
         value = float(text)

@@ -3,6 +3,13 @@
 Usage::
 
     localization-play BAG [--rate R] [--topics T [T ...]] [--start-delay S] [--loop] [--clock]
+    localization-play [BAG] --map NAME_OR_YAML [--initial-pose X,Y,YAW]
+
+``--map`` publishes a map (a name of the package's maps/, e.g. ``basement_fixed``, or a
+map_server YAML) on ``/map`` latched (reliable, transient local, as nav2's map_server), before the
+bag; without a bag the map stays available until Ctrl-C. ``--initial-pose X,Y,YAW`` publishes one
+``geometry_msgs/PoseWithCovarianceStamped`` on ``/initialpose`` (map frame, std 0.3 m / 0.1 rad)
+once a subscriber is there, before the bag. No ``ros2`` CLI needed.
 
 ``BAG`` is a ROS 1 ``.bag``, a rosbag2 directory, or a ``.db3`` / ``.mcap`` file (read with
 ``localization.bag_io``; no ``ros2 bag`` needed). Every topic (or only those given with
@@ -41,7 +48,7 @@ import time
 from collections.abc import Sequence
 
 from localization.bags import BagError, open_bag
-from localization.tools.args import non_negative_float, positive_float, split_ros_args
+from localization.tools.args import map_name_or_yaml, non_negative_float, pose, positive_float, split_ros_args
 
 PROG = "localization-play"
 LATCHED_TOPICS = ("/tf_static",)
@@ -50,7 +57,12 @@ DEFAULT_DEPTH = 100
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description="Republish a ROS 1 or ROS 2 bag with rclpy at bag time / rate.")
-    p.add_argument("bag", help="ROS 1 .bag file, rosbag2 directory, or .db3/.mcap file")
+    p.add_argument("bag", nargs="?", help="ROS 1 .bag file, rosbag2 directory, or .db3/.mcap file")
+    p.add_argument("--map", type=map_name_or_yaml, metavar="NAME_OR_YAML",
+                   help="publish this map on /map, latched (a map name such as basement_fixed, or a YAML)")
+    p.add_argument("--initial-pose", type=pose, metavar="X,Y,YAW",
+                   help="publish one initial pose on /initialpose (map frame; use --initial-pose=-1,2,0 for "
+                        "negative values)")
     p.add_argument("--rate", type=positive_float, default=1.0, help="playback speed factor (1.0 = real time)")
     p.add_argument("--topics", nargs="+", metavar="T", help="publish only these topics (default: all)")
     p.add_argument("--start-delay", type=non_negative_float, default=1.0, metavar="S",
@@ -92,7 +104,19 @@ def _error(text: str) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     own, ros_args = split_ros_args(argv)
-    args = build_parser().parse_args(own)
+    parser = build_parser()
+    args = parser.parse_args(own)
+    if args.bag is None and args.map is None and args.initial_pose is None:
+        parser.error("give a BAG, --map or --initial-pose")
+    if args.map is not None:
+        from localization.core.occupancy_map import MapError, load_map
+        try:
+            args.map_msg = load_map(args.map)
+        except MapError as exc:
+            _error(str(exc))
+            return 1
+    if args.bag is None:
+        return _play(None, {}, {}, args, ros_args)
 
     try:
         bag = open_bag(args.bag)
@@ -163,6 +187,12 @@ def _play(bag, infos, classes, args, ros_args) -> int:
             except ImportError as exc:
                 _warn(f"no /clock: {exc}")
 
+        _publish_map_and_pose(node, args, stop)
+        if bag is None:
+            if args.map is not None:
+                print(f"{PROG}: publishing {args.map} on /map (latched) until Ctrl-C", flush=True)
+                stop.wait()
+            raise KeyboardInterrupt
         if stop.wait(args.start_delay):
             raise KeyboardInterrupt
         checked: set[str] = set()
@@ -219,9 +249,47 @@ def _play(bag, infos, classes, args, ros_args) -> int:
     parts = [f"{counts[t]} {t}" for t in counts if t not in skipped]
     note = f"; skipped {', '.join(sorted(skipped))}" if skipped else ""
     interrupted = " (interrupted)" if stop.is_set() else ""
-    print(f"{PROG}: published {sum(counts.values())} messages ({', '.join(parts)}) from {bag.path.name} "
-          f"in {elapsed:.2f} s at rate {args.rate:g}{interrupted}{note}", flush=True)
+    if bag is not None:
+        print(f"{PROG}: published {sum(counts.values())} messages ({', '.join(parts)}) from {bag.path.name} "
+              f"in {elapsed:.2f} s at rate {args.rate:g}{interrupted}{note}", flush=True)
     return 0
+
+
+def _publish_map_and_pose(node, args, stop) -> None:
+    """``--map`` (latched, kept by the publisher while the node lives) and ``--initial-pose`` (once a
+    subscriber is matched, at most ``max(start_delay, 5 s)`` waiting)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    if getattr(args, "map_msg", None) is not None:
+        from nav_msgs.msg import OccupancyGrid
+
+        from localization.ros.messages import occupancy_grid_msg
+        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        args.map_pub = node.create_publisher(OccupancyGrid, "/map", qos)
+        args.map_pub.publish(occupancy_grid_msg(args.map_msg, time.time(), "map"))
+    if args.initial_pose is not None:
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+
+        from localization.core.geometry import yaw_to_quaternion
+        pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 10)
+        deadline = time.monotonic() + max(args.start_delay, 5.0)
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline and not stop.is_set():
+            stop.wait(0.05)
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = "map"
+        now = time.time_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
+        x, y, yaw = args.initial_pose
+        q = yaw_to_quaternion(yaw)
+        msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
+        msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = float(q[2]), float(q[3])
+        cov = [0.0] * 36
+        cov[0], cov[7], cov[35] = 0.3 ** 2, 0.3 ** 2, 0.1 ** 2
+        msg.pose.covariance = cov
+        pub.publish(msg)
+        matched = pub.get_subscription_count()
+        print(f"{PROG}: initial pose ({x:.2f}, {y:.2f}, {yaw:.2f}) published on /initialpose "
+              f"({matched} subscriber{'s' if matched != 1 else ''})", flush=True)
 
 
 if __name__ == "__main__":

@@ -45,13 +45,17 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--start", type=pose, metavar="X,Y,YAW", help="true start pose")
     ap.add_argument("--waypoints", type=_waypoints, metavar="'X,Y;X,Y;...'|FILE", help="route to drive")
     ap.add_argument("--closed", action="store_true", default=None, help="the route is a loop (needs --duration)")
-    ap.add_argument("--speed", type=float, help="cruise speed m/s (max 4)")
+    ap.add_argument("--speed", type=float, help="cruise speed m/s (max 8)")
     ap.add_argument("--duration", type=float, help="seconds (default: until the end of the route)")
     ap.add_argument("--seed", type=int)
     ap.add_argument("--odom-noise", type=float, metavar="K", help="std of the noise on vx, vy (m/s) and wz (rad/s)")
     ap.add_argument("--speed-scale", type=float, help="odometry speed scale bias (e.g. 0.95)")
     ap.add_argument("--yaw-rate-bias", type=float, help="odometry yaw-rate bias (rad/s)")
+    ap.add_argument("--yaw-rate-scale", type=float, help="odometry yaw-rate scale (e.g. 1.04)")
+    ap.add_argument("--odom-latency", type=float, metavar="S", help="odometry reports the twist S seconds late")
     ap.add_argument("--range-noise", type=float, help="lidar range noise std (m), default 0.01")
+    ap.add_argument("--sweep", action="store_true", default=None,
+                    help="per-beam sweep timing (time_increment filled, the car moves during the scan)")
     ap.add_argument("--no-initialpose", action="store_true", help="do not record /initialpose")
     ap.add_argument("--initial-offset", type=pose, metavar="DX,DY,DYAW",
                     help="/initialpose = true start + offset (map frame), default 0.3,0.4,0.2")
@@ -69,6 +73,7 @@ def config_from_args(args) -> SimConfig:
                        ("speed", "speed"), ("duration", "duration"), ("seed", "seed"),
                        ("odom_noise", "odom_noise"), ("speed_scale", "speed_scale"),
                        ("yaw_rate_bias", "yaw_rate_bias"), ("range_noise", "range_noise"),
+                       ("yaw_rate_scale", "yaw_rate_scale"), ("odom_latency", "odom_latency"), ("sweep", "sweep"),
                        ("initial_offset", "initial_offset"), ("kidnap_at", "kidnap_at"),
                        ("kidnap_to", "kidnap_to")):
         value = getattr(args, name)

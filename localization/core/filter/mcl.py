@@ -6,7 +6,8 @@ State: N particles (x, y, θ) in the map frame and their log-weights.
     correct:   log w_i ← log w_i + log p(z | p_i)              on every scan z
                normalise in log space (log-sum-exp)
     resample:  systematic (low-variance) resampling when ESS < fraction · N,
-               then a small Gaussian roughening so the cloud never collapses to one state
+               then a small Gaussian roughening so the cloud never collapses to one state;
+               with a KLD sampler (``kld.py``) each resampling also picks N (adaptive count)
     estimate:  weighted mean of x, y; circular mean of θ; weighted covariance (θ wrapped)
 """
 from __future__ import annotations
@@ -38,7 +39,7 @@ class SensorUpdateResult:
 
 class MonteCarloLocalizer:
     def __init__(self, motion_model: MotionModel, sensor_model: SensorModel, num_particles: int = 2000,
-                 resample_ess_fraction: float = 1.0, roughening=(0.01, 0.01, 0.005), rng=None):
+                 resample_ess_fraction: float = 1.0, roughening=(0.01, 0.01, 0.005), rng=None, kld=None):
         if num_particles < 1:
             raise ValueError(f"num_particles must be >= 1, got {num_particles}")
         self.motion_model = motion_model
@@ -50,6 +51,9 @@ class MonteCarloLocalizer:
         self.particles = np.zeros((self.num_particles, 3))
         self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
         self.initialized = False
+        self.kld = kld  # a filter.kld.KLDSampler: each resampling picks the particle count (None: fixed)
+        self.kld_hold = False  # True: keep the current count even with a KLD sampler (a global spread)
+        self.last_bins = 0  # KLD: occupied bins at the last resampling
 
     # ------------------------------------------------------------------ initialisation
     def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
@@ -91,9 +95,13 @@ class MonteCarloLocalizer:
         """Move every particle by the robot-frame odometry delta [dx, dy, dθ]."""
         self.motion_model.evaluate(self.particles, odometry, out=self.particles)
 
-    def sensor_update(self, ranges, angles) -> SensorUpdateResult:
-        """Weight particles by the scan, normalise, and resample when the ESS is low."""
-        log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles)
+    def sensor_update(self, ranges, angles, offsets=None) -> SensorUpdateResult:
+        """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
+        per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``)."""
+        if offsets is None:
+            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles)
+        else:
+            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets)
         combined = self.log_weights + log_lik
         peak = combined.max()
         if not np.isfinite(peak):
@@ -113,6 +121,16 @@ class MonteCarloLocalizer:
         """Systematic (low-variance) resampling, then roughening."""
         if weights is None:
             weights = self.weights
+        if self.kld is not None and not self.kld_hold:  # adaptive count: KLD draws the indices and their number
+            draw = self.kld.resample(self.particles, weights, self.rng)
+            self.last_bins, n = draw.bins, draw.indices.size
+            self.particles = self.particles[draw.indices]
+            self.num_particles = n
+            if self.roughening.any():
+                self.particles += self.rng.standard_normal((n, 3)) * self.roughening
+                self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+            self.log_weights = np.full(n, -np.log(n))
+            return
         n = self.num_particles
         if resample_kernel is not None and self.particles.shape == (n, 3) and len(weights) == n:
             # one compiled O(N) pass: the same draws, indices and arithmetic as the numpy code below

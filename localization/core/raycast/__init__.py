@@ -11,28 +11,40 @@ lookup_table_exact   LookupTableRayCaster(refine=1) the table plus an exact fini
 distance_transform   DistanceTransformRayCaster     sphere tracing (no precomputation)
 exact                ExactRayCaster                 Amanatides–Woo traversal: the reference
 ==================== ============================== ============================================
+
+On maps of more than ``range_table_lazy_cells`` cells both table casters are a
+``TiledLookupTableRayCaster`` (``tiled_table.py``): the same table, built per tile where the
+particles are.
 """
 from __future__ import annotations
 
 from localization.core.occupancy_map import OccupancyMap
+from localization.core.parameters import default
 from localization.core.raycast.distance_transform import DistanceTransformRayCaster
 from localization.core.raycast.exact import ExactRayCaster, RayCaster
 from localization.core.raycast.lookup_table import DEFAULT_THETA_BINS, LookupTableRayCaster
+from localization.core.raycast.tiled_table import TiledLookupTableRayCaster
 
 RAY_CASTERS = ("lookup_table", "lookup_table_exact", "distance_transform", "exact")
 
 __all__ = ["RAY_CASTERS", "DistanceTransformRayCaster", "ExactRayCaster", "LookupTableRayCaster", "RayCaster",
-           "make_ray_caster"]
+           "TiledLookupTableRayCaster", "make_ray_caster"]
 
 
 def make_ray_caster(kind: str, occupancy_map: OccupancyMap, max_range: float,
-                    theta_bins: int = DEFAULT_THETA_BINS) -> RayCaster:
-    """The caster ``kind`` (one of ``RAY_CASTERS``) for a map; lookup tables go through the disk cache."""
+                    theta_bins: int = DEFAULT_THETA_BINS, lazy_cells: int | None = None) -> RayCaster:
+    """The caster ``kind`` (one of ``RAY_CASTERS``) for a map; lookup tables go through the disk cache,
+    except on maps of more than ``lazy_cells`` cells (default: the ``range_table_lazy_cells``
+    parameter), whose table is built per tile where the particles are (``tiled_table.py``)."""
     if kind == "exact":
         return ExactRayCaster(occupancy_map, max_range)
     if kind == "distance_transform":
         return DistanceTransformRayCaster(occupancy_map, max_range)
     if kind in ("lookup_table", "lookup_table_exact"):
+        lazy_cells = default("range_table_lazy_cells") if lazy_cells is None else int(lazy_cells)
+        if occupancy_map.data.size > lazy_cells:
+            return TiledLookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,
+                                                     refine=1.0 if kind == "lookup_table_exact" else 0.0)
         return LookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,
                                             refine=1.0 if kind == "lookup_table_exact" else 0.0)
     raise ValueError(f"unknown ray caster {kind!r} ({', '.join(RAY_CASTERS)})")

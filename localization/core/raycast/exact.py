@@ -44,6 +44,14 @@ class RayCaster:
         cells = self._cast_grid(ox, oy, np.cos(th), np.sin(th))
         return (np.minimum(cells, self.max_cells) * self.map.resolution).reshape(len(poses), angles.size)
 
+    def cast_rays(self, sensor_poses, angles) -> np.ndarray:
+        """One ray per row: ranges (K,) for sensor poses (K, 3) and beam angles (K,) (e.g. each
+        beam of a sweeping lidar cast from the pose at its own time)."""
+        g = self.map.world_to_grid_pose(np.atleast_2d(np.asarray(sensor_poses, dtype=float)))
+        th = g[:, 2] + np.asarray(angles, dtype=float).ravel()
+        cells = self._cast_grid(g[:, 0] + 1.0, g[:, 1] + 1.0, np.cos(th), np.sin(th))
+        return np.minimum(cells, self.max_cells) * self.map.resolution
+
     def _blocked(self, x, y) -> np.ndarray:
         """Whether continuous padded-grid points lie in blocking cells (outside counts as blocking)."""
         h, w = self.blocking.shape

@@ -98,12 +98,14 @@ if HAVE_NUMBA:
                 table[i, k] = np.uint16(min(t * units_per_cell + 0.5, 65535.0))
 
     @njit(cache=True, nogil=True)
-    def beam_ranges(row, f0, u, v, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s, out):  # pragma: no cover
+    def beam_ranges(row, f0, u, v, du, dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s,
+                    out):  # pragma: no cover
         """Ranges (cells) of every beam seen from one sensor, into ``out`` (B,).
 
         ``row``: the table row of the sensor's cell; ``f0``: sensor heading in bins, in [0, K);
         ``beam_f``: beam angles in bins, in [0, K); (u, v): the sensor's offset from the cell
-        centre in its own frame (ahead, left); ``fs``, ``q0s``, ``q1s``: (B,) scratch. Three
+        centre in its own frame (ahead, left); (du[b], dv[b]): beam b's own origin offset from the
+        sensor, same frame, in cells (a deskewed sweep; zeros otherwise); ``fs``, ``q0s``, ``q1s``: (B,) scratch. Three
         passes so the arithmetic pass has no gathers or branches and compiles to SIMD: bin
         positions, table reads, geometry."""
         n_bins = row.size
@@ -131,8 +133,10 @@ if HAVE_NUMBA:
                 q1 = q1s[b]
                 cb = beam_c[b]
                 sb = beam_s[b]
-                along = u * cb + v * sb  # the sensor's offset along the beam ...
-                perp = v * cb - u * sb  # ... and across it
+                ub = u + du[b]
+                vb = v + dv[b]
+                along = ub * cb + vb * sb  # the beam origin's offset along the beam ...
+                perp = vb * cb - ub * sb  # ... and across it
                 near = (q0 if a < 0.5 else q1) * inv_units - along
                 r0 = q0 * inv_units
                 r1 = q1 * inv_units
@@ -161,7 +165,7 @@ if HAVE_NUMBA:
             for b in range(n_beams):
                 f = fs[b]
                 a = f - math.floor(f)
-                along = u * beam_c[b] + v * beam_s[b]
+                along = (u + du[b]) * beam_c[b] + (v + dv[b]) * beam_s[b]
                 if mode == 1:  # linear in the range
                     r = ((1.0 - a) * q0s[b] + a * q1s[b]) * inv_units - along
                 else:  # nearest bin
@@ -170,18 +174,20 @@ if HAVE_NUMBA:
                 out[b] = max_cells if r > max_cells else r
 
     @njit(cache=True, nogil=True)
-    def refine(blocking, ox, oy, c, s, beam_c, beam_s, consts, q0s, q1s, cells):  # pragma: no cover
+    def refine(blocking, ox, oy, c, s, du, dv, beam_c, beam_s, consts, q0s, q1s, cells):  # pragma: no cover
         """Exact finish: march each beam (from the sensor at padded grid (ox, oy), heading
-        cos/sin c, s) from ``consts[C_REFINE]`` cells short of the nearest of its estimate and
-        its two bins' ranges, so a wall edge passing between the bins is resolved exactly."""
+        cos/sin c, s, moved by the beam's own offset (du, dv) in the sensor frame) from
+        ``consts[C_REFINE]`` cells short of the nearest of its estimate and its two bins' ranges,
+        so a wall edge passing between the bins is resolved exactly."""
         margin = consts[C_REFINE]
         inv_units = consts[C_INV_UNITS]
         max_cells = consts[C_MAX_CELLS]
         for b in range(cells.size):
             near = min(q0s[b], q1s[b]) * inv_units
             t0 = min(cells[b], near) - margin
-            cells[b] = march_from(blocking, ox, oy, c * beam_c[b] - s * beam_s[b], s * beam_c[b] + c * beam_s[b],
-                                   t0 if t0 > 0.0 else 0.0, max_cells)
+            cells[b] = march_from(blocking, ox + c * du[b] - s * dv[b], oy + s * du[b] + c * dv[b],
+                                  c * beam_c[b] - s * beam_s[b], s * beam_c[b] + c * beam_s[b],
+                                  t0 if t0 > 0.0 else 0.0, max_cells)
 
     @njit(cache=True, nogil=True, inline="always")
     def locate(x, y, th, map_ox, map_oy, map_c, map_s, resolution, map_yaw, index, n_bins):  # pragma: no cover
@@ -221,6 +227,7 @@ if HAVE_NUMBA:
         q0s = np.empty(n_beams)
         q1s = np.empty(n_beams)
         cells = np.empty(n_beams)
+        zeros = np.zeros(n_beams)  # no per-beam origin offsets
         for i in range(poses.shape[0]):
             cell, f0, u, v, gx, gy, c, s = locate(poses[i, 0], poses[i, 1], poses[i, 2], map_ox, map_oy, map_c,
                                                    map_s, resolution, map_yaw, index, n_bins)
@@ -228,9 +235,10 @@ if HAVE_NUMBA:
                 for b in range(n_beams):
                     out[i, b] = 0.0
                 continue
-            beam_ranges(table[cell], f0, u, v, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s, cells)
+            beam_ranges(table[cell], f0, u, v, zeros, zeros, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s,
+                        cells)
             if consts[C_REFINE] > 0.0:
-                refine(blocking, gx + 1.0, gy + 1.0, c, s, beam_c, beam_s, consts, q0s, q1s, cells)
+                refine(blocking, gx + 1.0, gy + 1.0, c, s, zeros, zeros, beam_c, beam_s, consts, q0s, q1s, cells)
             for b in range(n_beams):
                 out[i, b] = cells[b] * resolution
 

@@ -215,6 +215,10 @@ class LookupTableRayCaster(RayCaster):
         if self.use_numba:
             self.cast(np.zeros((1, 3)), np.zeros(1))
 
+    def prepare(self, particles, laser_offset=(0.0, 0.0, 0.0)) -> None:
+        """Called with the base poses before a fused query: nothing to do for a full table
+        (``TiledLookupTableRayCaster`` builds the tiles the lasers are in)."""
+
     def kernel_args(self, angles) -> tuple:
         """What a fused compiled kernel needs to cast beams ``angles`` from any sensor pose
         (``kernels.locate`` + ``kernels.beam_ranges`` + ``kernels.refine``): map pose, occupied
@@ -251,9 +255,11 @@ class LookupTableRayCaster(RayCaster):
                      self._consts, self._mode, out)
         return out
 
-    def cast_numpy(self, sensor_poses, angles) -> np.ndarray:
+    def cast_numpy(self, sensor_poses, angles, offsets=None) -> np.ndarray:
         """``cast`` in plain numpy: the reference for the compiled kernel, the fallback without numba.
-        With ``refine`` the beams are cast by ``ExactRayCaster`` instead (what refining approaches)."""
+        With ``refine`` the beams are cast by ``ExactRayCaster`` instead (what refining approaches).
+        ``offsets`` (B, 2): each beam's origin moved by (dx, dy) metres in the sensor frame (a
+        deskewed sweep), folded into the offset from the cell centre as the fused beam kernel does."""
         poses = np.atleast_2d(np.asarray(sensor_poses, dtype=float))
         angles = np.asarray(angles, dtype=float).ravel()
         k = self.theta_bins
@@ -281,6 +287,9 @@ class LookupTableRayCaster(RayCaster):
         ex, ey = g[:, 0] - (col + 0.5), g[:, 1] - (row + 0.5)
         c, s = np.cos(g[:, 2]), np.sin(g[:, 2])
         u, v = (c * ex + s * ey)[:, None], (c * ey - s * ex)[:, None]
+        if offsets is not None:
+            offsets = np.asarray(offsets, dtype=float).reshape(-1, 2) / self.map.resolution
+            u, v = u + offsets[None, :, 0], v + offsets[None, :, 1]
         _, beam_c, beam_s = self._beams(angles)
         along, perp = u * beam_c + v * beam_s, v * beam_c - u * beam_s
         a = f - np.floor(f)
@@ -304,7 +313,13 @@ class LookupTableRayCaster(RayCaster):
             fallback = (q0 >= TABLE_MAX_UNITS) | (q1 >= TABLE_MAX_UNITS) | ~(den > 1e-9)
             r = np.where(fallback, nearest, line)
         r = np.clip(r, 0.0, max_cells) * self.map.resolution
-        if self.refine > 0 and ok.any():
+        if self.refine > 0 and ok.any() and offsets is None:
             r[ok] = RayCaster.cast(self, poses[ok], angles)  # through _cast_grid: the exact marcher
+        elif self.refine > 0 and ok.any():  # each beam from its own origin
+            gc, gs = np.cos(poses[ok, 2])[:, None], np.sin(poses[ok, 2])[:, None]
+            dx, dy = offsets[None, :, 0] * self.map.resolution, offsets[None, :, 1] * self.map.resolution
+            origins = np.stack([poses[ok, 0:1] + gc * dx - gs * dy, poses[ok, 1:2] + gs * dx + gc * dy,
+                                np.broadcast_to(poses[ok, 2:3], (int(ok.sum()), angles.size))], axis=-1)
+            r[ok] = self.cast_rays(origins.reshape(-1, 3), np.tile(angles, int(ok.sum()))).reshape(-1, angles.size)
         r[~ok] = 0.0
         return r

@@ -9,6 +9,9 @@ treat them alike:
 
 ``beam.BeamModel``: the course's beam model (p_hit, p_short, p_max, p_rand) over ray-cast
 expected ranges, tabulated 201 × 201.
+``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood field (each beam's end point
+scored by its distance to the nearest occupied cell; no ray casting); ``sensor_model`` picks one
+(``localizer.build_filter``), docs/models.md compares them.
 """
 from __future__ import annotations
 

@@ -17,9 +17,21 @@ product over beams, computed as a sum of logs so 100 beams never underflow, then
 
 Particles off the map or in an occupied cell get log weight −inf.
 
+Units: expected ranges are cast in map metres; measured ranges are lidar metres and become map
+metres times ``lidar_scale_to_map_scale`` (1 for a lidar and map that agree; the course's code
+divided both ranges by it, which only re-binned the table — here it is the correction
+``localization-calibrate`` estimates). Both are then binned at the map resolution.
+
 With the lookup-table caster (the default) one compiled pass per particle does it all — laser
 pose, table row, interpolated range, table index, log sum — with no (N, B) temporaries
 (``_fused_kernel``); ``log_likelihood_numpy`` is its numpy reference, asserted equal in the tests.
+
+Deskew (a sweeping lidar): beam b is measured from the laser pose L_b = L ⊕ δ_b, where L is the
+laser pose at the scan's reference time and δ_b = (dx_b, dy_b, dθ_b) the laser's own motion until
+beam b's time, in the laser frame (the same for every particle: ``offsets``). Each beam is cast
+from its own origin: dθ_b turns the beam, and (dx_b, dy_b) (a few cm) is added to the laser's
+offset (u, v) from its table cell's centre, which the table query already handles (the wall line
+through the two bins' hit points, ``raycast.kernels.beam_ranges``) — no extra ray casting.
 """
 from __future__ import annotations
 
@@ -60,6 +72,7 @@ class BeamModelParams:
     laser_offset_yaw: float = default("laser_offset_yaw", course=True)  # rad
     ray_caster: str = default("ray_caster", course=True)
     scan_theta_discretization: int = default("scan_theta_discretization", course=True)
+    range_table_lazy_cells: int = default("range_table_lazy_cells", course=True)  # larger maps: table per tile
 
     @classmethod
     def from_parameters(cls, params) -> "BeamModelParams":
@@ -70,6 +83,8 @@ class BeamModelParams:
 class BeamModel:
     """The beam model (the course's ``SensorModel``). ``BeamModel(**overrides)`` or
     ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets."""
+
+    supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
 
     def __init__(self, params: BeamModelParams | None = None, *, occupancy_map: OccupancyMap | None = None,
                  laser_offset=None, **overrides):
@@ -122,12 +137,18 @@ class BeamModel:
     # ------------------------------------------------------------------ the map
     @property
     def cells_per_metre(self) -> float:
-        return 1.0 / (self.map.resolution * self.lidar_scale_to_map_scale)
+        """Map cells per map metre (expected ranges are cast in map metres)."""
+        return 1.0 / self.map.resolution
 
     @property
     def max_range(self) -> float:
-        """The range (metres) of z_max: rays are cast no further."""
-        return self.z_max * self.map.resolution * self.lidar_scale_to_map_scale
+        """The range (map metres) of z_max: rays are cast no further."""
+        return self.z_max * self.map.resolution
+
+    def measured_to_cells(self, ranges) -> np.ndarray:
+        """Measured ranges (lidar metres) -> table rows: lidar_scale_to_map_scale turns lidar metres
+        into map metres (the correction ``localization-calibrate`` estimates)."""
+        return self.to_cells(np.asarray(ranges, dtype=float) * self.lidar_scale_to_map_scale)
 
     def set_map(self, occupancy_map: OccupancyMap, ray_caster=None) -> None:
         """Use a (new) map: builds its ray caster (``ray_caster``: a ready caster, or a name)."""
@@ -136,7 +157,7 @@ class BeamModel:
             self.ray_caster = ray_caster
         else:
             self.ray_caster = make_ray_caster(ray_caster or self.ray_caster_kind, occupancy_map, self.max_range,
-                                              self.scan_theta_discretization)
+                                              self.scan_theta_discretization, self.range_table_lazy_cells)
         if self._fused:  # compile (or load from numba's cache) now, not on the first scan
             self.log_likelihood(np.zeros((1, 3)), np.zeros(1), np.zeros(1))
 
@@ -150,10 +171,20 @@ class BeamModel:
         half = 0.5 * self.scan_field_of_view
         return np.linspace(-half, half, num_beams)
 
-    def expected_ranges(self, particles, angles) -> np.ndarray:
-        """Ray-cast ranges (metres), (N, B), from each particle's laser pose."""
+    def expected_ranges(self, particles, angles, offsets=None) -> np.ndarray:
+        """Ray-cast ranges (metres), (N, B), from each particle's laser pose (``offsets`` (B, 3):
+        each beam cast from the laser pose ⊕ its offset, see the module docstring)."""
         sensor = compose(np.atleast_2d(particles), self.laser_offset) if self.laser_offset.any() else particles
-        return self.ray_caster.cast(sensor, angles)
+        if offsets is None:
+            return self.ray_caster.cast(sensor, angles)
+        offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+        angles = np.asarray(angles, dtype=float).ravel() + offsets[:, 2]
+        if isinstance(self.ray_caster, LookupTableRayCaster):  # as the fused kernel: offsets folded into (u, v)
+            return self.ray_caster.cast_numpy(sensor, angles, offsets[:, :2])
+        origins = compose(np.atleast_2d(sensor)[:, None, :],
+                          np.column_stack([offsets[:, :2], np.zeros(len(offsets))])[None])
+        return self.ray_caster.cast_rays(origins.reshape(-1, 3), np.tile(angles, len(origins))).reshape(
+            len(origins), -1)
 
     def to_cells(self, ranges_m) -> np.ndarray:
         """Metres -> integer table indices in [0, z_max]; NaN/inf count as z_max."""
@@ -161,33 +192,45 @@ class BeamModel:
         cells = np.where(np.isnan(cells), self.z_max, cells)
         return np.rint(np.clip(cells, 0, self.z_max)).astype(np.intp)
 
-    def _inputs(self, particles, observation, angles):
+    def _inputs(self, particles, observation, angles, offsets=None):
         if self.map is None:
             raise RuntimeError("the sensor model has no map yet: call set_map() first")
         particles = np.ascontiguousarray(np.atleast_2d(np.asarray(particles, dtype=float)))
         observation = np.asarray(observation, dtype=float).ravel()
         if angles is None:
             angles = self.default_angles(observation.size)
-        return particles, observation, np.asarray(angles, dtype=float).ravel()
+        if offsets is not None:
+            offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+            if offsets.shape[0] != observation.size or not offsets.any() or not np.all(np.isfinite(offsets)):
+                offsets = None  # no motion during the sweep (or unusable offsets): a rigid scan
+        return particles, observation, np.asarray(angles, dtype=float).ravel(), offsets
 
-    def log_likelihood(self, particles, observation, angles=None) -> np.ndarray:
+    def log_likelihood(self, particles, observation, angles=None, offsets=None) -> np.ndarray:
         """Squashed log weights (N,): sum over beams of log p(z|d), divided by squash_factor;
-        −inf for particles off the map or in an occupied cell."""
-        particles, observation, angles = self._inputs(particles, observation, angles)
+        −inf for particles off the map or in an occupied cell. ``offsets`` (B, 3): per-beam laser
+        motion (dx, dy, dθ) during a sweep, in the laser frame (deskew; see the module docstring)."""
+        particles, observation, angles, offsets = self._inputs(particles, observation, angles, offsets)
         if not self._fused:
-            return self.log_likelihood_numpy(particles, observation, angles)
-        log_rows = np.ascontiguousarray(self._log_table[self.to_cells(observation)])
+            return self.log_likelihood_numpy(particles, observation, angles, offsets)
+        self.ray_caster.prepare(particles, self.laser_offset)  # a large map's table: build the tiles in use
+        log_rows = np.ascontiguousarray(self._log_table[self.measured_to_cells(observation)])
         out = np.empty(particles.shape[0])
         ox, oy, oth = (float(v) for v in self.laser_offset)
-        _fused_kernel(particles, ox, oy, oth, *self.ray_caster.kernel_args(angles), float(self.cells_per_metre),
-                      float(self.z_max), log_rows, float(self.squash_factor), out)
+        if offsets is None:
+            du = dv = np.zeros(angles.size)
+        else:
+            angles = angles + offsets[:, 2]
+            du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
+            dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
+        _fused_kernel(particles, ox, oy, oth, *self.ray_caster.kernel_args(angles), du, dv,
+                      float(self.cells_per_metre), float(self.z_max), log_rows, float(self.squash_factor), out)
         return out
 
-    def log_likelihood_numpy(self, particles, observation, angles=None) -> np.ndarray:
+    def log_likelihood_numpy(self, particles, observation, angles=None, offsets=None) -> np.ndarray:
         """``log_likelihood`` in numpy over the caster's ``cast``: the reference of the fused kernel."""
-        particles, observation, angles = self._inputs(particles, observation, angles)
-        z = self.to_cells(observation)
-        d = self.to_cells(self.expected_ranges(particles, angles))
+        particles, observation, angles, offsets = self._inputs(particles, observation, angles, offsets)
+        z = self.measured_to_cells(observation)
+        d = self.to_cells(self.expected_ranges(particles, angles, offsets))
         log_w = self._log_table[z[None, :], d].sum(axis=1) / self.squash_factor
         log_w[self.map.is_occupied_or_outside(particles[:, :2])] = -np.inf
         return log_w
@@ -201,10 +244,11 @@ class BeamModel:
 if HAVE_NUMBA:
     @njit(cache=True, nogil=True)
     def _fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
-                      occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode,
+                      occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
                       cells_per_metre, z_max, log_rows, squash_factor, out):  # pragma: no cover - compiled
         """out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for particles off the map
-        or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b."""
+        or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b;
+        (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, cells."""
         n_bins = table.shape[1]
         h, w = occupied.shape
         n_beams = beam_f.size
@@ -237,9 +281,11 @@ if HAVE_NUMBA:
             if cell < 0:
                 out[i] = blind / squash_factor
                 continue
-            beam_ranges(table[cell], f0, u, v, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s, cells)
+            beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
+                        q1s, cells)
             if consts[C_REFINE] > 0.0:
-                refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_c, beam_s, consts, q0s, q1s, cells)
+                refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_du, beam_dv, beam_c, beam_s, consts, q0s, q1s,
+                       cells)
             total = 0.0
             for b in range(n_beams):
                 d = (cells[b] * resolution) * cells_per_metre  # metres, then as BeamModel.to_cells

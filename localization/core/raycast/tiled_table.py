@@ -1,0 +1,253 @@
+"""The range table of large maps, built tile by tile where the particles are.
+
+``LookupTableRayCaster`` holds a row of ``K`` uint16 ranges for every free cell: 2·K bytes per
+free cell (288 B at K = 144), so memory and build time grow with the map's free area — 0.8 GB
+and ~18 s for the Stata basement tiled 3 × 3 (2.8 M free cells of 20 M), of which a car ever
+sees a sliver. ``TiledLookupTableRayCaster`` keeps the very same table layout and query kernels,
+but:
+
+- the free cells are numbered tile by tile (square tiles of ``tile`` × ``tile`` cells, row-major
+  inside a tile), so each tile's rows are one contiguous block ``table[start_t : start_t+1]``;
+- the table is allocated zero-filled but not written: the operating system maps its pages only
+  when they are first written (``np.zeros`` → calloc → anonymous mmap), so an unbuilt tile costs
+  no memory;
+- before every query (``prepare``), the tiles holding the sensor (laser) poses are looked up
+  (t = ⌊row / tile⌋ · n_cols + ⌊col / tile⌋ of the laser's cell) and the missing ones built by the
+  same compiled marcher (``kernels.build_kernel``), so every row a query reads is exactly the row
+  the full table would hold.
+
+Resident memory is then O(map cells) for the grids (int32 index, the blocking and clearance
+grids: ~6 bytes per cell) plus 2·K bytes per free cell *of the tiles visited*. The query itself
+is the full table's (same kernel, same numbers), so accuracy is the full table's by
+construction; ``test_large_map.py`` asserts the rows equal a full build's and the casts the
+exact caster's. A global spread over the whole map visits every tile (the full table's build
+time and memory, spread over the first scan).
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+
+import numpy as np
+
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.raycast import kernels as K
+from localization.core.raycast.exact import RayCaster
+from localization.core.raycast.kernels import HAVE_NUMBA, TABLE_MAX_UNITS
+from localization.core.raycast.lookup_table import (
+    BUILD_THREADS,
+    DEFAULT_THETA_BINS,
+    INTERPOLATIONS,
+    LookupTableRayCaster,
+)
+
+DEFAULT_TILE_CELLS = 32  # cells per tile side (1.6 m at 0.05 m/cell)
+
+if HAVE_NUMBA:
+    from numba import njit
+
+    @njit(cache=True, nogil=True)
+    def _chessboard_kernel(blocking, out):  # pragma: no cover - compiled
+        """Two-pass chamfer with unit 8-neighbour steps: out = min(255, chessboard distance to the
+        nearest blocking cell), as ``scipy.ndimage.distance_transform_cdt(~blocking, "chessboard")``."""
+        h, w = blocking.shape
+        for i in range(h):
+            for j in range(w):
+                if blocking[i, j]:
+                    out[i, j] = 0
+                    continue
+                d = 255
+                if i > 0:
+                    for dj in (-1, 0, 1):
+                        jj = j + dj
+                        if 0 <= jj < w and out[i - 1, jj] + 1 < d:
+                            d = out[i - 1, jj] + 1
+                if j > 0 and out[i, j - 1] + 1 < d:
+                    d = out[i, j - 1] + 1
+                out[i, j] = d
+        for i in range(h - 1, -1, -1):
+            for j in range(w - 1, -1, -1):
+                d = out[i, j]
+                if d == 0:
+                    continue
+                if i < h - 1:
+                    for dj in (-1, 0, 1):
+                        jj = j + dj
+                        if 0 <= jj < w and out[i + 1, jj] + 1 < d:
+                            d = out[i + 1, jj] + 1
+                if j < w - 1 and out[i, j + 1] + 1 < d:
+                    d = out[i, j + 1] + 1
+                out[i, j] = d
+
+
+def chessboard_clearance(blocking) -> np.ndarray:
+    """uint8 min(255, chessboard distance in cells to the nearest blocking cell): the build's
+    clearance (``kernels.build_kernel``) in one byte per cell, no int32 temporaries."""
+    blocking = np.ascontiguousarray(blocking, dtype=bool)
+    if not HAVE_NUMBA:  # pragma: no cover
+        return chessboard_clearance_numpy(blocking)
+    out = np.empty(blocking.shape, dtype=np.uint8)
+    _chessboard_kernel(blocking, out)
+    return out
+
+
+def chessboard_clearance_numpy(blocking) -> np.ndarray:
+    """The reference of ``chessboard_clearance`` (scipy; int32 temporaries)."""
+    from scipy.ndimage import distance_transform_cdt
+    return np.minimum(distance_transform_cdt(~np.asarray(blocking, dtype=bool), metric="chessboard"),
+                      255).astype(np.uint8)
+
+
+class TiledLookupTableRayCaster(LookupTableRayCaster):
+    """``LookupTableRayCaster`` whose table rows are built per tile on first use (module docstring)."""
+
+    def __init__(self, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,
+                 interpolation: str = "line", refine: float = 0.0, tile: int = DEFAULT_TILE_CELLS,
+                 use_numba: bool = HAVE_NUMBA):
+        RayCaster.__init__(self, occupancy_map, max_range)
+        theta_bins = int(theta_bins)
+        if theta_bins < 8:
+            raise ValueError(f"theta_bins must be >= 8, got {theta_bins}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"unknown interpolation {interpolation!r} ({', '.join(INTERPOLATIONS)})")
+        if not (math.isfinite(refine) and refine >= 0):
+            raise ValueError(f"refine must be a number of cells >= 0, got {refine}")
+        t0 = time.perf_counter()
+        self.theta_bins, self.interpolation, self.refine = theta_bins, interpolation, float(refine)
+        self.use_numba = bool(use_numba) and HAVE_NUMBA
+        self.tile = int(tile)
+        free = occupancy_map.free
+        h, w = free.shape
+        self.tiles_shape = (-(-h // self.tile), -(-w // self.tile))
+        n_tiles = self.tiles_shape[0] * self.tiles_shape[1]
+        # free cells numbered tile by tile (tile id, then row-major in the tile), one band of tile
+        # rows at a time so the temporaries stay small on a 20 M-cell map
+        self.index = np.full(free.shape, -1, dtype=np.int32)
+        counts = np.zeros(n_tiles, dtype=np.int64)
+        next_row = 0
+        for band in range(self.tiles_shape[0]):
+            r0 = band * self.tile
+            rows, cols = np.nonzero(free[r0:r0 + self.tile])
+            tile_id = band * self.tiles_shape[1] + cols // self.tile
+            order = np.argsort(tile_id, kind="stable")  # nonzero is row-major: stable keeps it in a tile
+            self.index[rows[order] + r0, cols[order]] = np.arange(next_row, next_row + rows.size, dtype=np.int32)
+            counts += np.bincount(tile_id, minlength=n_tiles)
+            next_row += rows.size
+        self.num_free = int(next_row)
+        self.tile_start = np.zeros(n_tiles + 1, dtype=np.int64)
+        np.cumsum(counts, out=self.tile_start[1:])
+        self.built = counts == 0  # a tile without free cells has nothing to build
+        self.units_per_cell = TABLE_MAX_UNITS / self.max_cells
+        self.table = np.zeros((self.num_free, theta_bins), dtype=np.uint16)  # pages mapped when written
+        self._clearance = chessboard_clearance(self.blocking) if self.use_numba else None
+        th = self.bin_angles
+        self._cos_k, self._sin_k = np.cos(th), np.sin(th)
+        self._jump = np.abs(np.abs(self._cos_k) - np.abs(self._sin_k)) > 1e-9
+        self._build_lock = threading.Lock()
+        self.loaded_from_cache, self.table_source, self.cache_path = False, "tiles", None
+        self.build_seconds = 0.0  # seconds spent building tiles so far
+        self.setup_seconds = time.perf_counter() - t0
+        ox, oy, yaw = occupancy_map.origin
+        self._map_args = (float(ox), float(oy), math.cos(yaw), math.sin(yaw), occupancy_map.resolution, float(yaw))
+        self._occupied = np.ascontiguousarray(occupancy_map.occupied)
+        self._beams_cache = None
+
+    @classmethod
+    def for_map(cls, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,
+                cache_dir=None, use_cache: bool = True, **kwargs) -> "TiledLookupTableRayCaster":
+        """As ``LookupTableRayCaster.for_map``; nothing is cached on disk (nothing is built up front)."""
+        caster = cls(occupancy_map, max_range, theta_bins, **kwargs)
+        caster.warm_up()
+        return caster
+
+    # ------------------------------------------------------------------ tiles
+    @property
+    def tiles_built(self) -> int:
+        return int(np.count_nonzero(self.built[self.tile_start[1:] > self.tile_start[:-1]]))
+
+    @property
+    def rows_built(self) -> int:
+        sizes = np.diff(self.tile_start)
+        return int(sizes[self.built].sum())
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes actually holding ranges (built rows) plus the index."""
+        return self.rows_built * self.theta_bins * 2 + self.index.nbytes
+
+    def tiles_of(self, sensor_poses) -> np.ndarray:
+        """Ids of the tiles holding world sensor poses (N, 3) (off-map poses: none), unique.
+        Same arithmetic as ``kernels.locate``."""
+        poses = np.asarray(sensor_poses, dtype=float).reshape(-1, 3)
+        ox, oy, c, s, res, _ = self._map_args
+        dx, dy = poses[:, 0] - ox, poses[:, 1] - oy
+        gx = (c * dx + s * dy) / res
+        gy = (-s * dx + c * dy) / res
+        h, w = self.index.shape
+        ok = (gx >= 0.0) & (gx < w) & (gy >= 0.0) & (gy < h)
+        col = np.floor(gx[ok]).astype(np.int64)
+        row = np.floor(gy[ok]).astype(np.int64)
+        return np.unique((row // self.tile) * self.tiles_shape[1] + col // self.tile)
+
+    def ensure_tiles(self, tiles) -> int:
+        """Build the listed tiles not built yet; returns how many were built."""
+        tiles = np.asarray(tiles, dtype=np.int64).ravel()
+        missing = tiles[~self.built[tiles]]
+        if missing.size == 0:
+            return 0
+        with self._build_lock:
+            missing = missing[~self.built[missing]]
+            t0 = time.perf_counter()
+            workers = max(1, min(BUILD_THREADS, os.cpu_count() or 1))
+            if self.use_numba and workers > 1 and missing.size >= 4 * workers:  # the kernel releases the GIL
+                from concurrent.futures import ThreadPoolExecutor
+                with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="range_tiles") as pool:
+                    list(pool.map(self._build_tile, missing.tolist()))
+            else:
+                for t in missing:
+                    self._build_tile(int(t))
+            self.build_seconds += time.perf_counter() - t0
+        return int(missing.size)
+
+    def _build_tile(self, t: int) -> None:
+        tr, tc = divmod(t, self.tiles_shape[1])
+        r0, c0 = tr * self.tile, tc * self.tile
+        rows, cols = np.nonzero(self.map.free[r0:r0 + self.tile, c0:c0 + self.tile])
+        rows, cols = rows + r0, cols + c0
+        out = self.table[self.tile_start[t]:self.tile_start[t + 1]]
+        if self.use_numba:
+            K.build_kernel(self.blocking, self._clearance, rows.astype(np.int64), cols.astype(np.int64),
+                           self._cos_k, self._sin_k, self._jump, self.max_cells, self.units_per_cell, out)
+        else:
+            th = self.bin_angles
+            cells = self._cast_grid(np.repeat(cols + 1.5, th.size), np.repeat(rows + 1.5, th.size),
+                                    np.tile(self._cos_k, rows.size), np.tile(self._sin_k, rows.size))
+            units = np.minimum(np.minimum(cells, self.max_cells) * self.units_per_cell + 0.5, TABLE_MAX_UNITS)
+            out[:] = units.astype(np.uint16).reshape(rows.size, th.size)
+        self.built[t] = True
+
+    def build_table(self) -> np.ndarray:
+        """Build every tile (what the full table holds); returns the table."""
+        self.ensure_tiles(np.arange(self.built.size))
+        return self.table
+
+    def prepare(self, particles, laser_offset=(0.0, 0.0, 0.0)) -> None:
+        """Build the tiles the lasers of base poses ``particles`` (N, 3) sit in (as the fused
+        sensor kernel places them: laser = particle ∘ offset)."""
+        p = np.asarray(particles, dtype=float).reshape(-1, 3)
+        ox, oy, oth = (float(v) for v in laser_offset)
+        if ox or oy:
+            c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+            p = np.column_stack([p[:, 0] + c * ox - s * oy, p[:, 1] + s * ox + c * oy, p[:, 2] + oth])
+        self.ensure_tiles(self.tiles_of(p))
+
+    # ------------------------------------------------------------------ queries
+    def cast(self, sensor_poses, angles, *args, **kwargs) -> np.ndarray:
+        self.prepare(sensor_poses)
+        return super().cast(sensor_poses, angles, *args, **kwargs)
+
+    def cast_numpy(self, sensor_poses, angles, *args, **kwargs) -> np.ndarray:
+        self.prepare(sensor_poses)
+        return super().cast_numpy(sensor_poses, angles, *args, **kwargs)

@@ -1,0 +1,79 @@
+"""The lifecycle (managed) variant of the node: ``particle_filter_lifecycle``.
+
+    ros2 run localization particle_filter_lifecycle --ros-args --params-file real_params
+    ros2 lifecycle set /particle_filter configure   # localizer, publishers, services, threads
+    ros2 lifecycle set /particle_filter activate    # subscriptions and timers: it localizes
+    ros2 lifecycle set /particle_filter deactivate  # inputs unsubscribed (state kept)
+    ros2 lifecycle set /particle_filter cleanup     # everything but the parameters released
+
+The same wiring as ``ParticleFilterNode`` (``node.LocalizationMixin``), mapped onto the
+transitions, so nav2's lifecycle_manager can start it beside map_server. Parameters are declared
+at construction (read-only, as in the plain node).
+"""
+from __future__ import annotations
+
+import sys
+
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+
+from localization.core.parameters import NODE_NAME, ParameterError
+from localization.ros.node import LocalizationMixin, spin_node
+
+
+class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
+    def __init__(self, **node_kwargs):
+        super().__init__(NODE_NAME, **node_kwargs)
+        try:
+            self._declare()
+        except ParameterError:
+            self.destroy_node()
+            raise
+        self._active = False
+
+    def on_configure(self, state) -> TransitionCallbackReturn:
+        try:
+            self._configure()
+        except Exception as exc:  # noqa: BLE001 - a failed transition, not a crash
+            self.get_logger().error(f"configure failed: {exc!r}")
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info("configured")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state) -> TransitionCallbackReturn:
+        self._activate()
+        self._active = True
+        return super().on_activate(state)
+
+    def on_deactivate(self, state) -> TransitionCallbackReturn:
+        self._deactivate()
+        self._active = False
+        self.get_logger().info("deactivated: inputs unsubscribed")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state) -> TransitionCallbackReturn:
+        self._cleanup()
+        self.get_logger().info("cleaned up")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state) -> TransitionCallbackReturn:
+        self._shutdown_wiring()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _shutdown_wiring(self) -> None:
+        if getattr(self, "_active", False):
+            self._deactivate()
+            self._active = False
+        if getattr(self, "_configured", False):
+            self._cleanup()
+
+    def destroy_node(self):
+        self._shutdown_wiring()
+        return super().destroy_node()
+
+
+def main(args=None) -> int:
+    return spin_node(LifecycleParticleFilterNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""localization-replay as a new user meets it (issue 11): a map image, a parameter file by name, a
+real bag without --params, an existing --out folder, the MCAP export of the run, and the figures
+(error.png's axes and legend, the initial-pose arrow under the track, the convergence line)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from localization.bags import open_bag
+from localization.eval import plots
+from localization.eval.datasets import REAL_BAGS, real_bag_path
+from localization.tools import replay as R
+
+
+def test_map_image_is_refused_with_the_yaml_to_give(capsys):
+    with pytest.raises(SystemExit) as exc:
+        R.main(["some.bag", "--map", "basement_fixed.png"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "basement_fixed.yaml" in err and "Traceback" not in err
+
+
+def test_params_by_name(tmp_path, capsys):
+    assert R.main([str(tmp_path / "none.bag"), "--map", "basement_fixed", "--params", "real_params"]) == 1
+    err = capsys.readouterr().err
+    assert "bag not found" in err and "parameter file" not in err  # real_params was found
+    assert R.main([str(tmp_path / "none.bag"), "--map", "basement_fixed", "--params", "no_such_params"]) == 1
+    assert "parameter file not found" in capsys.readouterr().err
+
+
+def test_real_bag_without_params_uses_the_car_parameters_and_writes_an_mcap(tmp_path, capsys):
+    name = "bag3"
+    bag, start = real_bag_path(name), REAL_BAGS[name].start
+    out = tmp_path / "out"
+    args = [str(bag), "--map", REAL_BAGS[name].map, "--initial-pose", ",".join(map(str, start)), "--particles",
+            "300", "--no-plots", "--no-reference", "--quiet", "--out", str(out)]
+    assert R.main(args + ["--mcap"]) == 0
+    err = capsys.readouterr().err
+    assert "real_params" in err and "/vesc/odom" in err  # said, not silent
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["odom_topic"] == "/vesc/odom"
+    with open_bag(out / "run_mcap") as b:
+        infos = b.topic_infos
+        for topic in ("/map", "/scan", "/pf/particles", "/pf/pose/odom", "/pf/track", "/tf", "/tf_static"):
+            assert topic in infos and infos[topic].count > 0, topic
+        assert infos["/scan"].count == m["scans"] if "scans" in m else infos["/scan"].count > 100
+        assert infos["/map"].latched
+        last = None
+        for msg in b.messages(["/pf/pose/odom"]):
+            last = msg.msg
+        assert last is not None and last.header.frame_id == "map"
+    # an existing --out folder is refused, unless --force
+    assert R.main(args) == 1
+    assert "exists already" in capsys.readouterr().err
+    assert R.main(args + ["--force"]) == 0
+
+
+class _Capture:
+    def __init__(self, monkeypatch):
+        import matplotlib.figure
+        self.figs = []
+        original = matplotlib.figure.Figure.savefig
+
+        def savefig(fig, *a, **k):
+            self.figs.append(fig)
+            return original(fig, *a, **k)
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+
+
+def test_error_plot_axis_covers_the_trace_and_legend_names_heading(tmp_path, monkeypatch):
+    cap = _Capture(monkeypatch)
+    t = np.linspace(0, 10, 200)
+    ct = 0.05 + 0.02 * np.sin(t)  # well below the 0.2 m line
+    plots.plot_errors(tmp_path / "e.png", 0.0, t, ct, np.full_like(t, 0.05), t, np.full_like(t, 0.9))
+    ax = cap.figs[-1].axes[0]
+    assert ax.get_ylim()[1] > 0.2 * 1.2  # the threshold line is not the top edge
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert any("heading" in label for label in labels)
+    twin = [a for a in cap.figs[-1].axes if a is not ax and a.bbox.bounds == ax.bbox.bounds][0]
+    assert ax.get_zorder() > twin.get_zorder()  # the CT error trace is drawn over the heading trace
+    big = np.r_[ct, 1.5]
+    plots.plot_errors(tmp_path / "e2.png", 0.0, np.r_[t, 10.1], big)
+    assert cap.figs[-1].axes[0].get_ylim()[1] >= 1.5  # the whole trace is visible
+
+
+def test_initial_pose_arrow_is_under_the_track(tmp_path, monkeypatch):
+    from helpers import corridor_map
+    cap = _Capture(monkeypatch)
+    est = np.column_stack([np.linspace(1, 8, 50), np.full(50, 1.5), np.zeros(50)])
+    plots.plot_trajectory(tmp_path / "t.png", corridor_map(), est, initial_pose=(1.0, 1.5, 0.0))
+    ax = cap.figs[-1].axes[0]
+    arrow = [p for p in ax.patches if p.get_label() == "initial pose"][0]
+    track = [line for line in ax.lines if line.get_label() == "estimate"][0]
+    assert arrow.get_zorder() < track.get_zorder()
+    assert arrow.get_facecolor()[3] == 0.0  # an outline: the start of the track shows through
+
+
+def test_convergence_at_once_reads_as_such():
+    from localization.eval.replay import summary_table
+    metrics = _fake_metrics(time_to_converge_s=0.001)
+    text = summary_table(metrics)
+    assert "at the first estimate" in text and "0.00 s" not in text
+    assert "after 1.50 s" in summary_table(_fake_metrics(time_to_converge_s=1.5))
+
+
+def _fake_metrics(**over):
+    """A metrics dict as compute_metrics makes it (the keys summary_table reads)."""
+    stats = {"mean": 0.05, "median": 0.04, "p95": 0.1, "max": 0.2, "rms": 0.06, "p05": 0.7, "min": 0.5}
+    m = {"bag": "b", "initial_pose_source": "--initial-pose", "scans": 10, "odometry": 10, "estimates": 20,
+         "sensor_updates": 10, "has_truth": True, "ct_error_m": stats, "heading_error_mean_abs_rad": 0.01,
+         "time_to_converge_s": 0.0, "converge_threshold_m": 0.2, "scan_map_agreement": stats, "health": stats,
+         "recoveries": 0, "max_jump_m": 0.1, "sensor_update_ms": {"median_ms": 1.0, "p95_ms": 2.0},
+         "motion_update_ms": {"median_ms": 0.1, "p95_ms": 0.2}, "num_particles": 100, "num_beams_per_particle": 100,
+         "ray_caster": "lookup_table", "effective_update_rate_hz": 100.0, "realtime_factor": 2.0,
+         "bag_duration_s": 1.0, "wall_time_s": 0.5, "particles": None, "truth_source": "/tf"}
+    m.update(over)
+    return m

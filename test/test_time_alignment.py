@@ -1,0 +1,278 @@
+"""Time-correct localization (issue 10): the odometry history on the scan's clock, estimates at
+the scan's own time, thread safety, and scan deskew (kernel, accuracy, effect on a fast drive)."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from helpers import corridor_map
+
+import localization.sim as S
+from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
+from localization.core.localizer import Localizer
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.odometry import MAX_EXTRAPOLATION_S, OdometryBuffer, TwistData
+from localization.core.parameters import Parameters
+from localization.core.paths import config_dir
+from localization.core.raycast.exact import ExactRayCaster
+from localization.core.scan import ScanData
+from localization.core.sensors.beam import BeamModel
+from localization.eval.datasets import trial_config
+from localization.eval.feed import Feeder, recording_events
+from localization.eval.metrics import along_cross_track, compare_to_truth
+
+
+@pytest.fixture(scope="module")
+def stata(maps_dir) -> OccupancyMap:
+    return OccupancyMap.from_yaml(maps_dir / "stata_basement.yaml")
+
+
+# ------------------------------------------------------------------------------------ the odometry history
+
+
+def _buffer(**kw) -> OdometryBuffer:
+    buf = OdometryBuffer(**kw)
+    for t, vx, wz in ((1.00, 9.0, 9.0), (1.02, 1.0, 0.0), (1.04, 2.0, 0.5), (1.06, 3.0, -0.5)):
+        buf.add(TwistData(t, vx, 0.0, wz))
+    return buf
+
+
+def test_buffer_pieces_interpolate_and_extrapolate_by_hand():
+    buf = _buffer()
+    dts, twists = buf.segments(1.01, 1.09)
+    # (1.01, 1.02] message 1.02; (1.02, 1.04] message 1.04; (1.04, 1.06] 1.06; then the last twist extrapolated
+    assert dts == pytest.approx([0.01, 0.02, 0.02, 0.03])
+    assert twists[:, 0] == pytest.approx([1.0, 2.0, 3.0, 3.0])
+    expected = np.zeros(3)
+    for dt, (vx, wz) in zip([0.01, 0.02, 0.02, 0.03], [(1.0, 0.0), (2.0, 0.5), (3.0, -0.5), (3.0, -0.5)]):
+        expected = compose(expected, integrate_twist(vx, 0.0, wz, dt))
+    assert buf.motion(1.01, 1.09) == pytest.approx(expected, abs=1e-15)
+    assert buf.motion(1.09, 1.01) == pytest.approx(inverse(expected), abs=1e-12)  # backwards: the inverse
+    assert buf.motion(0.5, 1.0) == pytest.approx(np.zeros(3))  # before the oldest stamp nothing is known
+    assert buf.twist_at(1.03) == pytest.approx([2.0, 0.0, 0.5]) and buf.twist_at(1.07) == pytest.approx([3, 0, -0.5])
+    # the last twist is extrapolated at most MAX_EXTRAPOLATION_S: stopped odometry stops the particles
+    far = buf.motion(1.06, 1.06 + MAX_EXTRAPOLATION_S + 5.0)
+    assert far == pytest.approx(integrate_twist(3.0, 0.0, -0.5, MAX_EXTRAPOLATION_S), abs=1e-12)
+    assert buf.twist_at(1.06 + MAX_EXTRAPOLATION_S + 0.01) == pytest.approx(np.zeros(3))
+
+
+def test_buffer_corrections_and_time_offset():
+    buf = _buffer(time_offset=-0.04, speed_scale=0.95, yaw_rate_scale=1.04, yaw_rate_bias=0.03)
+    assert buf.latest == pytest.approx(1.02)  # stamped 1.06, describes the motion up to 1.02
+    assert buf.twist_at(0.995) == pytest.approx([0.95 * 2.0, 0.0, 1.04 * 0.5 + 0.03])  # message 1.04 -> (0.98, 1.00]
+    buf.trim(1.01)
+    assert len(buf) == 2 and buf.oldest == pytest.approx(1.00)  # (1.00, 1.02] still holds 1.01
+
+
+# ------------------------------------------------------------------------------------ the localizer
+
+
+def _corridor_localizer(**overrides) -> Localizer:
+    loc = Localizer(Parameters(num_particles=200, random_seed=1, ray_caster="distance_transform",
+                               deterministic=True, **overrides))
+    loc.set_map(corridor_map())
+    loc.set_initial_pose([2.0, 1.5, 0.0])
+    return loc
+
+
+def _scan(stamp, time_increment=0.0, n=101):
+    return ScanData(stamp, np.full(n, 0.9), -1.0, 1.0, 0.02, 0.02, 10.0, time_increment=time_increment)
+
+
+def test_estimate_is_stamped_with_the_time_it_describes():
+    loc = _corridor_localizer()
+    for k in range(6):
+        loc.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.0))
+    # a swept scan: the particles are moved to the middle of its sweep (extrapolating the last twist)
+    est = loc.on_scan(_scan(1.10, time_increment=1e-4))
+    assert est.stamp == pytest.approx(1.10 + 0.5 * 100 * 1e-4)
+    # each odometry message: that estimate carried forward to the message's stamp with the odometry since
+    out = loc.on_odometry(TwistData(1.12, 2.0, 0.0, 0.0))
+    assert out.stamp == pytest.approx(1.12)
+    assert out.pose == pytest.approx(compose(est.pose, [2.0 * (1.12 - est.stamp), 0.0, 0.0]), abs=1e-9)
+    assert loc.estimate.stamp == pytest.approx(1.12)
+    # a scan older than odometry already applied: moved back exactly, updated, moved forward again
+    est2 = loc.on_scan(_scan(1.105))
+    assert est2.stamp == pytest.approx(1.105)
+    w, th = loc.filter.weights, loc.filter.particles[:, 2]  # a straight 0.03 m moves each particle along its heading
+    shift = 2.0 * 0.015 * np.dot(w, np.cos(th)) / w.sum()
+    assert loc.filter.estimate().pose[0] == pytest.approx(est2.pose[0] + shift, abs=1e-9)  # at 1.12 again
+    # without alignment: the scan is used at the newest odometry and stamped with its own stamp
+    off = _corridor_localizer(align_odometry=False)
+    for k in range(6):
+        off.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.0))
+    assert off.on_scan(_scan(1.10, time_increment=1e-4)).stamp == pytest.approx(1.10)
+
+
+def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
+    loc = _corridor_localizer()
+    loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
+    x0 = loc.filter.estimate().pose[0]
+    real_update = loc.filter.sensor_update
+    started = threading.Event()
+
+    def slow_update(*args, **kwargs):
+        started.set()
+        time.sleep(0.3)
+        return real_update(*args, **kwargs)
+
+    loc.filter.sensor_update = slow_update
+    result = []
+    worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0))))
+    worker.start()
+    assert started.wait(5.0)
+    waits = []
+    for k in range(1, 6):  # 0.1 s of 1 m/s while the update runs
+        t0 = time.perf_counter()
+        est = loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))
+        waits.append(time.perf_counter() - t0)
+        assert est is not None and est.stamp == pytest.approx(1.0 + 0.02 * k)
+    worker.join()
+    assert max(waits) < 0.15  # odometry never waited for the scan
+    assert est.pose[0] == pytest.approx(x0 + 0.1, abs=0.03)  # the estimate carried the queued motion
+    loc.filter.sensor_update = real_update
+    (updated,) = result
+    assert updated.stamp == 1.0
+    out = loc.on_odometry(TwistData(1.12, 1.0, 0.0, 0.0))  # the next call holding the lock applies all of it
+    assert out.pose == pytest.approx(compose(updated.pose, [0.12, 0.0, 0.0]), abs=1e-9)  # the update carried on
+    w, th = loc.filter.weights, loc.filter.particles[:, 2]
+    moved = loc.filter.estimate().pose[0] - updated.pose[0]
+    assert moved == pytest.approx(0.12 * np.dot(w, np.cos(th)) / w.sum(), abs=1e-9)  # every period applied once
+
+
+def _run(rec, params: Parameters):
+    loc = Localizer(params)
+    loc.set_map(load_stata())
+    loc.set_initial_pose(rec.initial_pose, stamp=-0.001)
+    feeder = Feeder(loc)
+    feeder.feed(recording_events(rec))
+    t, poses = feeder.log.estimates()
+    err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
+    late = err.t > 2.0  # after the convergence from the initial offset
+    along, _ = along_cross_track(t[t > 2.0], poses[t > 2.0], rec.truth_t, rec.truth_poses)
+    return float(err.ct_error[late].mean()), float(along.mean())
+
+
+_STATA = {}
+
+
+def load_stata():
+    if "m" not in _STATA:
+        from localization.core.occupancy_map import load_map
+        _STATA["m"] = load_map("stata_basement")
+    return _STATA["m"]
+
+
+@pytest.fixture(scope="module")
+def fast_rec():
+    """The first 7 s of the fast trial: 0 -> 7 m/s down the diagonal corridor, odometry 40 ms late."""
+    return S.simulate(trial_config("fast", duration=7.0), load_stata())
+
+
+def _params(**kw) -> Parameters:
+    base = dict(num_particles=1000, random_seed=2, ray_caster="lookup_table", laser_offset_x=0.275)
+    base.update(kw)
+    return Parameters.from_yaml(config_dir() / "params.yaml", **base)
+
+
+def test_alignment_with_the_right_time_offset_beats_no_alignment(fast_rec):
+    aligned, along_aligned = _run(fast_rec, _params(odom_time_offset=-0.04))
+    unaligned, along_unaligned = _run(fast_rec, _params(align_odometry=False, deskew=False))
+    assert aligned < 0.8 * unaligned, (aligned, unaligned)
+    assert abs(along_aligned) < abs(along_unaligned)
+    assert abs(along_aligned) < 0.02
+
+
+def test_deskew_reduces_the_error_on_the_fast_trial(fast_rec):
+    deskewed, _ = _run(fast_rec, _params(odom_time_offset=-0.04))
+    skewed, _ = _run(fast_rec, _params(odom_time_offset=-0.04, deskew=False))
+    assert deskewed < skewed, (deskewed, skewed)
+
+
+# ------------------------------------------------------------------------------------ the deskew kernel
+
+
+def _sweep_offsets(laser, vx=7.0, wz=0.8, beams=100, sweep=0.01875):
+    """Per-beam laser motion over a sweep around its middle (as the localizer computes it)."""
+    dt = np.linspace(-0.5 * sweep, 0.5 * sweep, beams)
+    robot = integrate_twists(vx, 0.0, wz, dt)
+    return compose(inverse(laser), compose(robot, laser)), robot
+
+
+@pytest.mark.parametrize("caster", ["lookup_table", "lookup_table_exact"])
+def test_deskew_kernel_equals_its_numpy_reference(stata, caster):
+    model = BeamModel(ray_caster=caster, laser_offset=(0.275, 0.02, 0.01), table_width=201, occupancy_map=stata)
+    rng = np.random.default_rng(5)
+    particles = np.column_stack([rng.normal(-12.0, 0.3, 300), rng.normal(14.5, 0.3, 300), rng.normal(-2.2, 0.1, 300)])
+    angles = np.linspace(-2.35, 2.35, 100)
+    offsets, _ = _sweep_offsets(model.laser_offset)
+    observation = model.expected_ranges(particles[:1], angles, offsets)[0] + rng.normal(0, 0.02, angles.size)
+    fast = model.log_likelihood(particles, observation, angles, offsets=offsets)
+    ref = model.log_likelihood_numpy(particles, observation, angles, offsets=offsets)
+    assert np.array_equal(np.isneginf(fast), np.isneginf(ref))
+    finite = np.isfinite(ref)
+    assert finite.sum() > 200
+    if caster == "lookup_table":
+        assert np.allclose(fast[finite], ref[finite], rtol=1e-12, atol=1e-9)
+    else:  # the exact finish marches from the beam's own origin; the reference casts exactly from it
+        assert np.median(np.abs(fast[finite] - ref[finite])) < 0.5
+    # zero offsets are the rigid scan
+    rigid = model.log_likelihood(particles, observation, angles)
+    assert np.array_equal(model.log_likelihood(particles, observation, angles, offsets=np.zeros((100, 3))), rigid)
+    assert not np.allclose(fast[finite], rigid[finite])
+
+
+def test_deskewed_ranges_match_exact_casting_from_each_beams_pose(stata):
+    model = BeamModel(ray_caster="lookup_table", laser_offset=(0.275, 0.0, 0.0), occupancy_map=stata)
+    exact = ExactRayCaster(stata, model.max_range)
+    angles = np.linspace(-2.35, 2.35, 100)
+    poses = np.array([[-12.5, 14.5, -2.2], [-30.0, -0.4, 3.1], [-54.8, 15.0, 1.57], [-35.0, 34.1, 0.0]])
+    errors_deskewed, errors_rigid = [], []
+    for pose in poses:
+        offsets, robot = _sweep_offsets(model.laser_offset)
+        truth_poses = compose(compose(pose, robot), model.laser_offset)  # the laser at each beam's time
+        truth = exact.cast_rays(truth_poses, angles + 0.0)
+        got = model.expected_ranges(pose[None], angles, offsets)[0]
+        rigid = model.expected_ranges(pose[None], angles)[0]
+        ok = truth < model.max_range - 0.5
+        errors_deskewed.append(np.abs(got - truth)[ok])
+        errors_rigid.append(np.abs(rigid - truth)[ok])
+    dsk, rig = np.concatenate(errors_deskewed), np.concatenate(errors_rigid)
+    assert np.median(dsk) < 0.02 and np.mean(dsk < 0.05) > 0.9, (np.median(dsk), np.mean(dsk < 0.05))
+    assert np.median(dsk) < 0.5 * np.median(rig)
+
+
+def test_swept_scan_gets_offsets_only_with_deskew_on():
+    loc = _corridor_localizer(num_beams_per_particle=101)
+    for k in range(6):
+        loc.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.4))
+    scan = _scan(1.10, time_increment=1e-4)
+    t_s = loc.scan_time(scan)
+    offsets = loc._deskew_offsets(scan, t_s)
+    assert offsets.shape == (101, 3)
+    # the first beam 5 ms before the middle, the last 5 ms after: ∓ 1 cm at 2 m/s
+    assert offsets[0, 0] == pytest.approx(-0.01, abs=1e-3) and offsets[-1, 0] == pytest.approx(0.01, abs=1e-3)
+    assert offsets[50] == pytest.approx(np.zeros(3), abs=1e-12)
+    assert loc._deskew_offsets(_scan(1.10), t_s) is None  # no sweep timing
+    off = _corridor_localizer(deskew=False)
+    off.on_odometry(TwistData(1.0, 2.0, 0.0, 0.0))
+    assert off._deskew_offsets(scan, t_s) is None
+    assert math.isfinite(t_s) and replace(scan, time_increment=1.0).time_increment == 1.0
+    assert loc.scan_time(replace(scan, time_increment=1.0)) == scan.stamp  # not a lidar sweep: ignored
+
+
+def test_a_car_that_stops_gets_one_more_update_where_it_stands():
+    loc = _corridor_localizer(update_min_distance=0.5, update_min_angle=0.5)
+    loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
+    assert loc.on_scan(_scan(1.0)) is not None  # the first scan after the initial pose
+    for k in range(1, 6):
+        loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))  # 0.1 m: below update_min_distance
+    assert loc.on_scan(_scan(1.1)) is None
+    for k in range(6, 9):
+        loc.on_odometry(TwistData(1.0 + 0.02 * k, 0.0, 0.0, 0.0))  # stopped
+    assert loc.on_scan(_scan(1.17)) is not None  # once where it stopped ...
+    assert loc.on_scan(_scan(1.2)) is None  # ... and not again while it stands
