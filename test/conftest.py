@@ -27,3 +27,36 @@ def shared_dir() -> Path:
 @pytest.fixture(scope="session")
 def maps_dir(shared_dir) -> Path:
     return Path(os.environ.get("LOCALIZATION_MAPS_DIR", shared_dir / "maps"))
+
+
+# ------------------------------------------------------------------ live-node fixtures (test_node*.py)
+@pytest.fixture(scope="module")
+def context():
+    """An rclpy context of its own (node_harness is imported here: only node tests load rclpy)."""
+    import node_harness as h
+    import rclpy
+    ctx = h.init_context()
+    yield ctx
+    rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def runner(context):
+    """``runner(**parameter_overrides)`` starts a node + probe; everything is shut down after the test."""
+    import node_harness as h
+    started = []
+
+    def start(**overrides):
+        r = h.start_runner(context, **overrides)
+        started.append(r)
+        return r
+
+    yield start
+    for r in started:
+        r.close()
+
+
+@pytest.fixture(scope="module")
+def drive():
+    import node_harness as h
+    return h.synthetic_drive()

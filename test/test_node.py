@@ -35,31 +35,6 @@ REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
 
 
-@pytest.fixture(scope="module")
-def context():
-    ctx = h.init_context()
-    yield ctx
-    rclpy.shutdown(context=ctx)
-
-
-@pytest.fixture
-def runner(context):
-    """``runner(**parameter_overrides)`` starts a node + probe; everything is shut down after the test."""
-    started = []
-
-    def start(**overrides):
-        r = h.start_runner(context, **overrides)
-        started.append(r)
-        return r
-
-    yield start
-    for r in started:
-        r.close()
-
-
-@pytest.fixture(scope="module")
-def drive():
-    return h.synthetic_drive()
 
 
 def tf_pose(t):

@@ -110,30 +110,6 @@ def test_pose_store_round_trip_and_bad_files(tmp_path):
 
 
 # ------------------------------------------------------------------ live node
-@pytest.fixture(scope="module")
-def context():
-    ctx = h.init_context()
-    yield ctx
-    rclpy.shutdown(context=ctx)
-
-
-@pytest.fixture
-def runner(context):
-    started = []
-
-    def start(**overrides):
-        r = h.start_runner(context, **overrides)
-        started.append(r)
-        return r
-
-    yield start
-    for r in started:
-        r.close()
-
-
-@pytest.fixture(scope="module")
-def drive():
-    return h.synthetic_drive()
 
 
 def _collect(node, msg_type, topic, qos=100):
