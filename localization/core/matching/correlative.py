@@ -223,18 +223,8 @@ class CorrelativeMatcher:
             d, (gu, gv, gphi) = self._sdf_at(g[:3], qg * g[3], with_gradient=True)
             cphi, sphi = math.cos(g[2]), math.sin(g[2])
             gs = gu * (cphi * qg[:, 0] - sphi * qg[:, 1]) + gv * (sphi * qg[:, 0] + cphi * qg[:, 1])
-            w = 1.0 / (1.0 + (d / ch) ** 2)
-            w[np.abs(d) > 4 * ch] = 0.0
-            if np.count_nonzero(w) < 20:
-                return None
-            Jm = np.stack([gu, gv, gphi, gs], axis=1)
-            H = (Jm * w[:, None]).T @ Jm
-            b = (Jm * w[:, None]).T @ d
-            try:
-                step = -np.linalg.solve(H + (1e-6 * np.trace(H) / 4 + 1e-12) * np.eye(4), b)
-            except np.linalg.LinAlgError:
-                return None
-            if not np.all(np.isfinite(step)):
+            step = gauss_newton_step(d, np.stack([gu, gv, gphi, gs], axis=1), ch, 20, 1e-6, 1e-12)
+            if step is None:
                 return None
             step[:2] = np.clip(step[:2], -0.5, 0.5)
             step[2] = float(np.clip(step[2], -c.angle_step, c.angle_step))
@@ -309,18 +299,8 @@ class CorrelativeMatcher:
         ch = c.huber_cells
         for _ in range(c.refine_iterations):
             d, (gu, gv, gphi) = self._sdf_at(g, qg, with_gradient=True)
-            w = 1.0 / (1.0 + (d / ch) ** 2)
-            w[np.abs(d) > 4 * ch] = 0.0
-            if np.count_nonzero(w) < 10:
-                return None
-            Jm = np.stack([gu, gv, gphi], axis=1)
-            H = (Jm * w[:, None]).T @ Jm
-            b = (Jm * w[:, None]).T @ d
-            try:
-                step = -np.linalg.solve(H + (1e-3 * np.trace(H) / 3 + 1e-9) * np.eye(3), b)
-            except np.linalg.LinAlgError:
-                return None
-            if not np.all(np.isfinite(step)):
+            step = gauss_newton_step(d, np.stack([gu, gv, gphi], axis=1), ch, 10, 1e-3, 1e-9)
+            if step is None:
                 return None
             step[:2] = np.clip(step[:2], -0.5, 0.5)
             step[2] = float(np.clip(step[2], -c.angle_step, c.angle_step))
@@ -328,3 +308,24 @@ class CorrelativeMatcher:
             if abs(step[0]) < 1e-3 and abs(step[1]) < 1e-3 and abs(step[2]) < 1e-5:
                 break
         return g
+
+
+def gauss_newton_step(d, jacobian, cauchy: float, min_inliers: int, damping: float, eps: float):
+    """One Cauchy-weighted, damped Gauss–Newton step on the residuals ``d`` (cells):
+
+        w_i = 1 / (1 + (d_i / c)²)  (0 beyond 4c),   step = −(JᵀWJ + λI)⁻¹ JᵀW d,   λ = damping·tr(JᵀWJ)/n + eps
+
+    None when fewer than ``min_inliers`` residuals carry weight or the system is singular."""
+    w = 1.0 / (1.0 + (d / cauchy) ** 2)
+    w[np.abs(d) > 4 * cauchy] = 0.0
+    if np.count_nonzero(w) < min_inliers:
+        return None
+    n = jacobian.shape[1]
+    weighted = jacobian * w[:, None]
+    H = weighted.T @ jacobian
+    b = weighted.T @ d
+    try:
+        step = -np.linalg.solve(H + (damping * np.trace(H) / n + eps) * np.eye(n), b)
+    except np.linalg.LinAlgError:
+        return None
+    return step if np.all(np.isfinite(step)) else None
