@@ -617,14 +617,50 @@ def _quiet_optuna() -> None:
     warnings.filterwarnings("ignore", message="Fixed parameter .* is out of range")
 
 
+class GracefulStop:
+    """Ctrl-C / SIGTERM as a graceful stop: the running trial finishes and is stored, then
+    ``study.stop()``. (A KeyboardInterrupt raised at an arbitrary point could leave the journal
+    file's lock behind, and the next writer would wait for it to go stale.) Use as a context
+    manager in the main thread; it is also the study callback that stops the study."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = {}
+
+    def __enter__(self) -> "GracefulStop":
+        import signal
+        import threading
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import signal
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+
+    def _handle(self, signum, frame) -> None:  # noqa: ARG002
+        self.requested = True
+
+    def __call__(self, study, trial) -> None:  # noqa: ARG002 - an Optuna callback
+        if self.requested:
+            study.stop()
+
+
 def run_worker(cfg: TuneConfig, worker: int, n_trials: int, callbacks=()) -> int:
-    """Run ``n_trials`` trials of the study in this process; returns how many ran."""
+    """Run ``n_trials`` trials of the study in this process; returns how many ran. Raises
+    KeyboardInterrupt after a graceful stop on Ctrl-C / SIGTERM."""
     _quiet_optuna()
     objective = Objective(cfg)
     study = make_study(cfg, worker)
     before = len(study.get_trials(deepcopy=False))
-    # a trial that raises is recorded as failed (Optuna logs its traceback) and the study goes on
-    study.optimize(objective, n_trials=n_trials, timeout=cfg.timeout, callbacks=list(callbacks), catch=(Exception,))
+    with GracefulStop() as stop:
+        # a trial that raises is recorded as failed (Optuna logs its traceback) and the study goes on
+        study.optimize(objective, n_trials=n_trials, timeout=cfg.timeout, callbacks=[*callbacks, stop],
+                       catch=(Exception,))
+    if stop.requested:
+        raise KeyboardInterrupt
     return len(study.get_trials(deepcopy=False)) - before
 
 
@@ -685,13 +721,11 @@ def run_workers(cfg: TuneConfig, n_trials: int, jobs: int = 1, progress: bool = 
              for k, n in enumerate(shares)]
     for p in procs:
         p.start()
-    try:
+    with GracefulStop() as stop:  # the workers get the signal too and stop after their running trial
         for p in procs:
             p.join()
-    except KeyboardInterrupt:
-        for p in procs:
-            p.join(timeout=30)
-        raise
+    if stop.requested:
+        raise KeyboardInterrupt
     failed = [p.name for p in procs if p.exitcode not in (0, None)]
     if failed:
         raise TuneError(f"worker process(es) {', '.join(failed)} failed (see the messages above)")
