@@ -234,8 +234,8 @@ class OccupancyMap:
         centre? (``distance_to_obstacle() <= radius``, computed by a binary dilation: cheaper than the EDT.)"""
         def compute():
             # the disk as rows: for each row offset ±di, a horizontal run of half-width w(di) (shifted
-            # ORs), shifted by ±di; the cells of binary_dilation(structure=disk), ~10x faster on a
-            # 20 M-cell map, with one run grid alive at a time
+            # ORs), shifted by ±di; the cells of binary_dilation(structure=disk), faster on large maps
+            # and with one run grid alive at a time
             reach = int(math.floor(radius / self.resolution + 1e-9))
             if reach < 0:
                 return np.zeros(self.data.shape, dtype=bool)

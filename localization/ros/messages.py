@@ -111,8 +111,8 @@ def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
     """The serialized (CDR, little endian) geometry_msgs/PoseArray of (at most ``max_count``)
     particles, built with numpy: what the node publishes (``publisher.publish(bytes)``).
 
-    Building 500 ``Pose`` objects in Python takes ~35 ms, longer than a whole sensor update at
-    thousands of particles; this takes ~0.05 ms. Layout (offsets from the end of the 4-byte
+    Building hundreds of ``Pose`` objects in Python costs more than a whole sensor update; this
+    costs next to nothing (figures in docs/performance.md). Layout (offsets from the end of the 4-byte
     encapsulation header): header.stamp int32 sec, uint32 nanosec; header.frame_id uint32
     length (with the NUL) + bytes + NUL; uint32 pose count; padding to 8; then per pose 7
     float64: position x, y, z, orientation x, y, z, w (the padding only when a pose follows).

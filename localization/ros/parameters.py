@@ -18,8 +18,8 @@ ODOM_QOS = QoSProfile(depth=50, history=HistoryPolicy.KEEP_LAST, reliability=Rel
 # qos_overrides./scan.subscription.reliability:=reliable
 QOS_OVERRIDES = QoSOverridingOptions.with_default_policies()
 # sensor-data QoS (best effort, depth 5: the callback only hands the scan to the sensor-update
-# thread, whose one-slot mailbox keeps the newest, so a scan waiting behind a slow update never
-# queues). Depth 1 lost ~35 % of 40 Hz scans whenever the callback thread was briefly busy.
+# thread, whose short queue (scan_worker.py) bounds how long a scan can wait). Depth 1 lost scans
+# whenever the callback thread was briefly busy (docs/node.md).
 SCAN_QOS = QoSProfile(depth=5, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.VOLATILE)
 _TYPE_NAMES = {bool: "a boolean (true/false)", int: "an integer", float: "a float", str: "a string"}

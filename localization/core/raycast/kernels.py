@@ -81,7 +81,7 @@ if HAVE_NUMBA:
         False (the exact diagonals) are marched from the centre: their rays pass through lattice
         corners, where a march started elsewhere may break the tie between two diagonally
         touching wall cells otherwise than ``ExactRayCaster`` and make the table inconsistent
-        between bins (measured: mean CT error of the simulated trials 0.03 m instead of 0.02)."""
+        between bins (which costs accuracy on the simulated trials: docs/performance.md)."""
         for i in range(rows.size):
             ox = cols[i] + 1.5  # +1: padding, +0.5: the cell centre
             oy = rows[i] + 1.5

@@ -1,9 +1,9 @@
 """The range table of large maps, built tile by tile where the particles are.
 
 ``LookupTableRayCaster`` holds a row of ``K`` uint16 ranges for every free cell: 2·K bytes per
-free cell (288 B at K = 144), so memory and build time grow with the map's free area — 0.8 GB
-and ~18 s for the Stata basement tiled 3 × 3 (2.8 M free cells of 20 M), of which a car ever
-sees a sliver. ``TiledLookupTableRayCaster`` keeps the very same table layout and query kernels,
+free cell (288 B at K = 144), so memory and build time grow with the map's free area (the Stata
+basement tiled 3 × 3 has 2.8 M free cells of 20 M; figures in docs/performance.md), of which a car
+ever sees a sliver. ``TiledLookupTableRayCaster`` keeps the very same table layout and query kernels,
 but:
 
 - the free cells are numbered tile by tile (square tiles of ``tile`` × ``tile`` cells, row-major
