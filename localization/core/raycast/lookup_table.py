@@ -79,17 +79,8 @@ class LookupTableRayCaster(RayCaster):
                  table: np.ndarray | None = None, interpolation: str = "line", refine: float = 0.0,
                  use_numba: bool = HAVE_NUMBA):
         super().__init__(occupancy_map, max_range)
-        theta_bins = int(theta_bins)
-        if theta_bins < 8:
-            raise ValueError(f"theta_bins must be >= 8, got {theta_bins}")
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"unknown interpolation {interpolation!r} ({', '.join(INTERPOLATIONS)})")
-        if not (math.isfinite(refine) and refine >= 0):
-            raise ValueError(f"refine must be a number of cells >= 0, got {refine}")
-        self.theta_bins = theta_bins
-        self.interpolation = interpolation
-        self.refine = float(refine)
-        self.use_numba = bool(use_numba) and HAVE_NUMBA
+        self._set_query_options(theta_bins, interpolation, refine, use_numba)
+        theta_bins = self.theta_bins
         free = occupancy_map.free
         self.num_free = int(np.count_nonzero(free))
         self.index = np.full(free.shape, -1, dtype=np.int32)
@@ -108,9 +99,24 @@ class LookupTableRayCaster(RayCaster):
             raise ValueError(f"range table must be uint16 of shape {(self.num_free, theta_bins)}, "
                              f"got {table.dtype} {table.shape}")
         self.table = np.ascontiguousarray(table)
-        ox, oy, yaw = occupancy_map.origin
-        self._map_args = (float(ox), float(oy), math.cos(yaw), math.sin(yaw), occupancy_map.resolution, float(yaw))
-        self._occupied = np.ascontiguousarray(occupancy_map.occupied)
+
+    def _set_query_options(self, theta_bins, interpolation: str, refine: float, use_numba: bool) -> None:
+        """Check and keep the query options and the map's constants for the kernels (shared with
+        ``TiledLookupTableRayCaster``)."""
+        theta_bins = int(theta_bins)
+        if theta_bins < 8:
+            raise ValueError(f"theta_bins must be >= 8, got {theta_bins}")
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"unknown interpolation {interpolation!r} ({', '.join(INTERPOLATIONS)})")
+        if not (math.isfinite(refine) and refine >= 0):
+            raise ValueError(f"refine must be a number of cells >= 0, got {refine}")
+        self.theta_bins = theta_bins
+        self.interpolation = interpolation
+        self.refine = float(refine)
+        self.use_numba = bool(use_numba) and HAVE_NUMBA
+        ox, oy, yaw = self.map.origin
+        self._map_args = (float(ox), float(oy), math.cos(yaw), math.sin(yaw), self.map.resolution, float(yaw))
+        self._occupied = np.ascontiguousarray(self.map.occupied)
         self._beams_cache = None
 
     # the exact (numpy) marcher: builds the table without numba, and is what ``refine`` approaches

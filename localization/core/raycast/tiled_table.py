@@ -25,7 +25,6 @@ time and memory, spread over the first scan).
 """
 from __future__ import annotations
 
-import math
 import os
 import threading
 import time
@@ -39,7 +38,6 @@ from localization.core.raycast.kernels import HAVE_NUMBA, TABLE_MAX_UNITS
 from localization.core.raycast.lookup_table import (
     BUILD_THREADS,
     DEFAULT_THETA_BINS,
-    INTERPOLATIONS,
     LookupTableRayCaster,
 )
 
@@ -107,16 +105,9 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
                  interpolation: str = "line", refine: float = 0.0, tile: int = DEFAULT_TILE_CELLS,
                  use_numba: bool = HAVE_NUMBA):
         RayCaster.__init__(self, occupancy_map, max_range)
-        theta_bins = int(theta_bins)
-        if theta_bins < 8:
-            raise ValueError(f"theta_bins must be >= 8, got {theta_bins}")
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(f"unknown interpolation {interpolation!r} ({', '.join(INTERPOLATIONS)})")
-        if not (math.isfinite(refine) and refine >= 0):
-            raise ValueError(f"refine must be a number of cells >= 0, got {refine}")
         t0 = time.perf_counter()
-        self.theta_bins, self.interpolation, self.refine = theta_bins, interpolation, float(refine)
-        self.use_numba = bool(use_numba) and HAVE_NUMBA
+        self._set_query_options(theta_bins, interpolation, refine, use_numba)
+        theta_bins = self.theta_bins
         self.tile = int(tile)
         free = occupancy_map.free
         h, w = free.shape
@@ -149,10 +140,6 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         self.loaded_from_cache, self.table_source, self.cache_path = False, "tiles", None
         self.build_seconds = 0.0  # seconds spent building tiles so far
         self.setup_seconds = time.perf_counter() - t0
-        ox, oy, yaw = occupancy_map.origin
-        self._map_args = (float(ox), float(oy), math.cos(yaw), math.sin(yaw), occupancy_map.resolution, float(yaw))
-        self._occupied = np.ascontiguousarray(occupancy_map.occupied)
-        self._beams_cache = None
 
     @classmethod
     def for_map(cls, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,
