@@ -190,6 +190,26 @@ def _check_topic(infos: dict, topic: str, wanted: tuple, what: str, option: str,
         raise ReplayError(f"no {what} messages on {topic} in bag {bag_path}")
 
 
+def check_topics(infos: dict, bag_path, scan_topic: str, odom_topic: str, truth_topic: str | None,
+                 init_topic: str, bag_initial_pose: bool) -> tuple[str | None, bool]:
+    """Check a bag's scan and odometry topics (ReplayError naming the alternatives) and the truth
+    topic (given, else ``/tf`` when the bag has it); returns (truth topic or None, whether the bag's
+    initial poses are used: ``bag_initial_pose`` and the bag has some)."""
+    _check_topic(infos, scan_topic, (LASER_SCAN,), "scan", "--scan-topic", bag_path)
+    _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag_path)
+    if truth_topic is not None:
+        if truth_topic not in infos:
+            raise ReplayError(f"truth topic {truth_topic} not in bag {bag_path}")
+        if infos[truth_topic].msgtype not in TRUTH_TYPES:
+            raise ReplayError(f"truth topic {truth_topic} has type {infos[truth_topic].msgtype}, expected one "
+                              f"of {', '.join(TRUTH_TYPES)}")
+    elif "/tf" in infos and infos["/tf"].msgtype == TF_MESSAGE:
+        truth_topic = "/tf"
+    use_bag_init = (bag_initial_pose and init_topic in infos and infos[init_topic].msgtype == POSE_COV
+                    and infos[init_topic].count > 0)
+    return truth_topic, use_bag_init
+
+
 def run_replay(opts: ReplayOptions) -> ReplayResult:
     """Replay a bag through the Localizer; collect estimates, truth, agreement and timing."""
     t_wall0 = time.perf_counter()
@@ -207,19 +227,9 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         raise ReplayError(str(exc)) from None
     with bag:
         infos = bag.topic_infos
-        _check_topic(infos, scan_topic, (LASER_SCAN,), "scan", "--scan-topic", bag.path)
-        _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag.path)
-        truth_topic = opts.truth_topic
-        if truth_topic is not None:
-            if truth_topic not in infos:
-                raise ReplayError(f"truth topic {truth_topic} not in bag {bag.path}")
-            if infos[truth_topic].msgtype not in TRUTH_TYPES:
-                raise ReplayError(f"truth topic {truth_topic} has type {infos[truth_topic].msgtype}, expected one "
-                                  f"of {', '.join(TRUTH_TYPES)}")
-        elif "/tf" in infos and infos["/tf"].msgtype == TF_MESSAGE:
-            truth_topic = "/tf"
-        use_bag_initialpose = (opts.initial_pose is None and not opts.force_global and init_topic in infos
-                               and infos[init_topic].msgtype == POSE_COV and infos[init_topic].count > 0)
+        truth_topic, use_bag_initialpose = check_topics(
+            infos, bag.path, scan_topic, odom_topic, opts.truth_topic, init_topic,
+            bag_initial_pose=opts.initial_pose is None and not opts.force_global)
         if opts.initial_pose is not None:
             init_source = "--initial-pose"
         elif opts.force_global:

@@ -52,14 +52,9 @@ from localization.core.scan import ScanData, beam_angles
 from localization.eval import metrics as M
 from localization.eval.feed import Feeder
 from localization.eval.replay import (
-    LASER_SCAN,
-    ODOMETRY,
-    POSE_COV,
-    TF_MESSAGE,
-    TRUTH_TYPES,
     ReplayError,
-    _check_topic,
     _collect_truth,
+    check_topics,
     load_map,
 )
 from localization.ros.conversions import pose_from_pose_with_covariance, scan_from_msg, twist_from_odometry
@@ -243,16 +238,8 @@ def load_bag(path, *, scan_topic: str = "/scan", odom_topic: str = "/odom", init
     except BagError as exc:
         raise ReplayError(str(exc)) from None
     with bag:
-        infos = bag.topic_infos
-        _check_topic(infos, scan_topic, (LASER_SCAN,), "scan", "--scan-topic", bag.path)
-        _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag.path)
-        if truth_topic is not None and (truth_topic not in infos or infos[truth_topic].msgtype not in TRUTH_TYPES):
-            raise ReplayError(f"truth topic {truth_topic} missing from {bag.path} or not one of "
-                              f"{', '.join(TRUTH_TYPES)}")
-        if truth_topic is None and "/tf" in infos and infos["/tf"].msgtype == TF_MESSAGE:
-            truth_topic = "/tf"
-        use_bag_init = (initial_pose is None and initialpose_topic in infos
-                        and infos[initialpose_topic].msgtype == POSE_COV and infos[initialpose_topic].count > 0)
+        truth_topic, use_bag_init = check_topics(bag.topic_infos, bag.path, scan_topic, odom_topic, truth_topic,
+                                                 initialpose_topic, bag_initial_pose=initial_pose is None)
         topics = [scan_topic, odom_topic] + ([initialpose_topic] if use_bag_init else []) \
             + ([truth_topic] if truth_topic else [])
         events: list = []
@@ -543,10 +530,8 @@ def check_bags(cfg: TuneConfig) -> None:
         except BagError as exc:
             raise ReplayError(str(exc)) from None
         with bag:
-            _check_topic(bag.topic_infos, cfg.scan_topic or start.scan_topic, (LASER_SCAN,), "scan", "--scan-topic",
-                         bag.path)
-            _check_topic(bag.topic_infos, cfg.odom_topic or start.odom_topic, (ODOMETRY,), "odometry",
-                         "--odom-topic", bag.path)
+            check_topics(bag.topic_infos, bag.path, cfg.scan_topic or start.scan_topic,
+                         cfg.odom_topic or start.odom_topic, None, start.initialpose_topic, bag_initial_pose=False)
 
 
 class Objective:
