@@ -409,14 +409,16 @@ class Localizer:
         self.filter.particles = compose(self.filter.particles, inverse(later))
         return later
 
-    def _deskew_offsets(self, full_scan: ScanData, t_s: float):
+    def _deskew_offsets(self, full_scan: ScanData, t_s: float, idx=None):
         """Per-beam laser motion δ_b (B, 3) in the laser frame from t_s to each used beam's own
-        time t_b = stamp + i_b · time_increment: δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's constant-twist
-        arc (the odometry twist at t_s) over t_b − t_s, L the laser offset. None without sweep timing."""
+        time t_b = stamp + i_b · time_increment (i_b: ``idx``, the downsampled beams' indices):
+        δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's constant-twist arc (the odometry twist at t_s) over
+        t_b − t_s, L the laser offset. None without sweep timing."""
         sweep = self._sweep(full_scan)
         if not (sweep > 0 and self.params.deskew and getattr(self.filter.sensor_model, "supports_deskew", False)):
             return None
-        idx = downsample_indices(np.size(full_scan.ranges), self.params.num_beams_per_particle)
+        if idx is None:
+            idx = downsample_indices(np.size(full_scan.ranges), self.params.num_beams_per_particle)
         with self._odom_lock:
             vx, vy, wz = self._odom.twist_at(t_s)
         robot = integrate_twists(vx, vy, wz, full_scan.stamp + idx * sweep - t_s)
@@ -508,7 +510,7 @@ class Localizer:
             return None
         if self._seed_pending and self.global_mode:
             self._seed_from_scan(scan)
-        offsets = None if t_s is None else self._deskew_offsets(full_scan, t_s)
+        offsets = None if t_s is None else self._deskew_offsets(full_scan, t_s, scan.indices)
         result = self.filter.sensor_update(scan.ranges, scan.angles, offsets)
         if not result.ok:
             self._impossible_scans += 1

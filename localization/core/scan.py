@@ -36,6 +36,7 @@ class Scan:
 
     ranges: np.ndarray
     angles: np.ndarray
+    indices: np.ndarray | None = None  # which beams of the full scan (downsample_scan)
 
 
 def beam_angles(num_ranges: int, angle_min: float, angle_max: float, angle_increment: float) -> np.ndarray:
@@ -75,4 +76,4 @@ def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = No
     angles = beam_angles(ranges.size, scan.angle_min, scan.angle_max, scan.angle_increment)[idx]
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max
-    return Scan(clean_ranges(ranges[idx], lo, hi), angles)
+    return Scan(clean_ranges(ranges[idx], lo, hi), angles, idx)
