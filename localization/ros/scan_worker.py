@@ -72,10 +72,3 @@ class ScanQueueWorker:
             self._cond.notify()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
-
-
-class LatestScanWorker(ScanQueueWorker):
-    """The one-slot mailbox (``depth=1``) with the old one-argument ``handle(item)``."""
-
-    def __init__(self, handle, log_error, name: str = "sensor_update"):
-        super().__init__(lambda item, t_put: handle(item), log_error, name, depth=1)
