@@ -247,7 +247,8 @@ def test_map_to_odom_tf_composes_with_odometry_to_the_estimate(runner, drive):
 
 
 def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
-    r = runner()
+    """With ``sensor_update_thread`` odometry poses keep flowing during a (blocked) sensor update."""
+    r = runner(sensor_update_thread=True)
     start_localizing(r, drive)
     entered, release = threading.Event(), threading.Event()
     original = r.node.localizer.filter.sensor_update
@@ -281,6 +282,40 @@ def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
     assert h.wait_until(lambda: h.key(r.probe.snapshot()[0][-1].header.stamp) == h.ns_key(odoms[11][0]), 5.0)
     travelled = np.hypot(*(odom_pose(r.probe.snapshot()[0][-1])[:2] - drive.initial_guess[:2]))
     assert travelled > 0.8 * 2.0 * 0.95 * (odoms[11][0] - odoms[0][0]) * 1e-9
+
+
+def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
+    """By default the scan callback runs the sensor update: odometry arriving meanwhile waits in its
+    queue and is handled, in order and completely, right after the update."""
+    r = runner()
+    assert r.node.scan_worker is None
+    start_localizing(r, drive)
+    entered, release = threading.Event(), threading.Event()
+    original = r.node.localizer.filter.sensor_update
+
+    def slow_update(*args, **kwargs):
+        entered.set()
+        release.wait(10.0)
+        return original(*args, **kwargs)
+
+    r.node.localizer.filter.sensor_update = slow_update
+    odoms = [e for e in drive.until(1.0) if e[1] == "odom"]
+    scans = [e for e in drive.until(1.0) if e[1] == "scan"]
+    r.send_odom(odoms[0][2])
+    r.probe.scan_pub.publish(scans[1][2])
+    assert entered.wait(5.0)
+    for _, _, msg in odoms[1:11]:
+        r.probe.odom_pub.publish(msg)  # queued behind the running sensor update
+    time.sleep(0.3)
+    want = [h.ns_key(t) for t, _, _ in odoms[1:11]]
+    assert not set(want) & {h.key(m.header.stamp) for m in r.probe.snapshot()[0]}  # still blocked
+    release.set()
+    assert h.wait_until(lambda: r.node.counts["scan"] == 1, 10.0)
+    assert h.wait_until(lambda: set(want) <= {h.key(m.header.stamp) for m in r.probe.snapshot()[0]}, 5.0)
+    got = [h.key(m.header.stamp) for m in r.probe.snapshot()[0] if h.key(m.header.stamp) in set(want)]
+    assert got == want  # every one, in order
+    travelled = np.hypot(*(odom_pose(r.probe.snapshot()[0][-1])[:2] - drive.initial_guess[:2]))
+    assert travelled > 0.8 * 2.0 * 0.95 * (odoms[10][0] - odoms[0][0]) * 1e-9
 
 
 def run_seeded(runner, drive, seed, seconds=1.0):

@@ -162,6 +162,9 @@ PARAMETERS = [
     Param("map_timeout", 5.0, "warn when no map has arrived this long (s) after the start", _positive, "> 0"),
     Param("tf_timeout", 1.0, "warn (and use laser_offset_*) when the laser pose is not in TF this long (s) after "
           "the first scan", _positive, "> 0"),
+    Param("sensor_update_thread", False, "run the sensor update on its own thread (a short FIFO of scans) instead "
+          "of in the scan callback: odometry poses keep flowing during an update, at the cost of a GIL hand-over "
+          "per scan (see docs/node.md, Threading)", lambda v: isinstance(v, bool), "true or false"),
     Param("diagnostics_period", 1.0, "period (s) of /diagnostics (diagnostic_msgs/DiagnosticArray)", _positive, "> 0"),
     Param("persist_pose", False, "write the estimate and its covariance to persist_pose_file every "
           "persist_pose_period s, and start from it when no initial pose is set", lambda v: isinstance(v, bool),

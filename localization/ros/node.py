@@ -10,11 +10,12 @@ message builders -> ROS messages). See docs/node.md for topics, frames and param
 ``_deactivate``, ``_cleanup``. ``ParticleFilterNode`` runs them all at construction;
 ``localization.ros.lifecycle_node`` maps them onto configure/activate/deactivate/cleanup.
 
-Threading: a SingleThreadedExecutor runs every subscription callback (each is short). The scan
-callback only queues the message for the sensor-update thread (``scan_worker.ScanQueueWorker``: a
-short FIFO, so a briefly late update catches up instead of losing scans), which runs the sensor
-update and publishes its outputs; a slow sensor update never delays the pose published on
-odometry (the Localizer queues odometry that arrives during an update). A map whose lookup-table
+Threading: a SingleThreadedExecutor runs every subscription callback. The scan callback runs the
+sensor update and publishes its outputs (as nav2_amcl's laser callback does); scans arriving
+meanwhile wait in the subscription's queue (SCAN_QOS depth), odometry in its own. With
+``sensor_update_thread`` the scan callback only queues the message for a sensor-update thread
+(``scan_worker.ScanQueueWorker``: a short FIFO), so odometry poses keep flowing during an update,
+at the price of a GIL hand-over per scan (measured in docs/node.md). A map whose lookup-table
 ray caster needs a range table (built, or loaded from the disk cache) is prepared on a third
 thread; meanwhile inputs are counted as waiting for the table and the odometry reference keeps
 moving, and the first pose goes out as soon as the table is ready. Why not rclpy's
@@ -135,7 +136,8 @@ class LocalizationMixin:
         self.health_pub = self.create_publisher(Float32, HEALTH_TOPIC, 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
-        self.scan_worker = ScanQueueWorker(self.process_scan, self.get_logger().error)
+        if p.sensor_update_thread:
+            self.scan_worker = ScanQueueWorker(self.process_scan, self.get_logger().error)
         self.map_worker = ScanQueueWorker(self._install_map, self.get_logger().error, name="map_preparation",
                                           depth=1)
         self._pf_services = [
@@ -187,12 +189,12 @@ class LocalizationMixin:
         for worker in (self.map_worker, self.scan_worker):
             if worker is not None:
                 worker.stop()  # no sensor update publishes through a destroyed node
-        if self.scan_worker is not None:
+        if self._configured:
+            dropped = "" if self.scan_worker is None else f", {self.scan_worker.dropped} dropped (queue full)"
             self.get_logger().info(
                 f"scans: {self.counts['scan_received']} received, {self.counts['scan']} processed "
                 f"({self.watchdog.sensor_updates} sensor updates, {self.watchdog.scans_waiting_for_table} while "
-                f"the range table was prepared), {self.scan_worker.dropped} dropped (queue full); scan -> pose: "
-                f"{self.watchdog.run_summary()}")
+                f"the range table was prepared){dropped}; scan -> pose: {self.watchdog.run_summary()}")
         if self.localizer is not None and self.params.persist_pose:
             self.persist_pose()
         if not self._configured:
@@ -373,11 +375,15 @@ class LocalizationMixin:
             self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
 
     def on_scan(self, msg) -> None:
-        """Subscription callback: hand the scan (serialized bytes, or a message) over to the
-        sensor-update thread."""
+        """Subscription callback: the scan (serialized bytes, or a message) through the sensor update
+        here, or handed over to the sensor-update thread (``sensor_update_thread``)."""
         self.counts["scan_received"] += 1
-        self.watchdog.scan_received(time.monotonic())
-        self.scan_worker.put(msg)
+        now = time.monotonic()
+        self.watchdog.scan_received(now)
+        if self.scan_worker is None:
+            self.process_scan(msg, now)
+        else:
+            self.scan_worker.put(msg)
 
     @_counted("scan")
     def process_scan(self, msg, t_put: float | None = None) -> None:
