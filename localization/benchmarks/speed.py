@@ -119,6 +119,8 @@ def probe_init(map_name: str, theta_bins: int, particles: int, beams: int) -> di
         "ready_s": (t6 - T_PROCESS) - (t5 - t4), "table_from_cache": bool(caster.loaded_from_cache),
         "ray_caster": params.ray_caster,
         "table_build_s": caster.build_seconds, "table_mb": caster.nbytes / 2**20, "peak_rss_mb": _rss_peak_mb(),
+        # the short-lived process that compiled the kernels into numba's cache (0: none ran)
+        "compile_child_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
     }
 
 
@@ -330,8 +332,10 @@ def format_report(r: dict) -> str:
                     f"map YAML/PNG load {w['map_load_s']:.2f} s; process start to first pose: cold "
                     f"{c['ready_s']:.2f} s, cached {w['ready_s']:.2f} s)")
     verdicts.append(f"  peak memory of a node-like process (4000 particles, table {c['table_mb']:.0f} MB): "
-                    f"cold {c['peak_rss_mb']:.0f} MB, cached {w['peak_rss_mb']:.0f} MB (target <= 400)  "
-                    f"{'OK' if r['peak_rss_mb'] <= 400 else 'MISSED'}")
+                    f"cold {c['peak_rss_mb']:.0f} MB (its short-lived kernel-compiling child "
+                    f"{c.get('compile_child_peak_rss_mb', 0):.0f} MB, before the table), "
+                    f"cached {w['peak_rss_mb']:.0f} MB "
+                    f"(target <= 300 on the Stata basement)  {'OK' if r['peak_rss_mb'] <= 300 else 'MISSED'}")
     verdicts.append(f"  (this benchmark process peaked at {r['bench_peak_rss_mb']:.0f} MB: the exact caster's "
                     "temporaries)")
     lines += ["targets:"] + verdicts

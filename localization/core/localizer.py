@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.compile_cache import ensure_compiled
 from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
@@ -192,6 +193,8 @@ class Localizer:
         ``ray_caster``: one made beforehand by ``prepare_ray_caster`` (e.g. off the callback thread)."""
         if len(occupancy_map.free_cells) == 0:
             raise MapError("map has no free cell (all unknown or occupied): ignored")
+        if ray_caster is None:
+            ensure_compiled(self.params, self.log)
         with self._lock:
             self.filter.sensor_model.set_map(occupancy_map, ray_caster)
             self.map_pending = False
@@ -216,6 +219,7 @@ class Localizer:
         meanwhile (inputs are reported as waiting for the table)."""
         from localization.core.raycast import make_ray_caster
         self.map_pending = True
+        ensure_compiled(self.params, self.log)
         sensor = self.filter.sensor_model
         if isinstance(sensor, LikelihoodFieldModel):  # no ray caster: its distance field
             return sensor.prepare(occupancy_map)

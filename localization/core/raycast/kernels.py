@@ -242,3 +242,37 @@ if HAVE_NUMBA:
             for b in range(n_beams):
                 out[i, b] = cells[b] * resolution
 
+
+if HAVE_NUMBA:
+    @njit(cache=True, nogil=True)
+    def chessboard_kernel(blocking, out):  # pragma: no cover - compiled
+        """Two-pass chamfer with unit 8-neighbour steps: out = min(255, chessboard distance to the
+        nearest blocking cell), as ``scipy.ndimage.distance_transform_cdt(~blocking, "chessboard")``."""
+        h, w = blocking.shape
+        for i in range(h):
+            for j in range(w):
+                if blocking[i, j]:
+                    out[i, j] = 0
+                    continue
+                d = 255
+                if i > 0:
+                    for dj in (-1, 0, 1):
+                        jj = j + dj
+                        if 0 <= jj < w and out[i - 1, jj] + 1 < d:
+                            d = out[i - 1, jj] + 1
+                if j > 0 and out[i, j - 1] + 1 < d:
+                    d = out[i, j - 1] + 1
+                out[i, j] = d
+        for i in range(h - 1, -1, -1):
+            for j in range(w - 1, -1, -1):
+                d = out[i, j]
+                if d == 0:
+                    continue
+                if i < h - 1:
+                    for dj in (-1, 0, 1):
+                        jj = j + dj
+                        if 0 <= jj < w and out[i + 1, jj] + 1 < d:
+                            d = out[i + 1, jj] + 1
+                if j < w - 1 and out[i, j + 1] + 1 < d:
+                    d = out[i, j + 1] + 1
+                out[i, j] = d

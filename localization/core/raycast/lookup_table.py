@@ -52,6 +52,24 @@ log = logging.getLogger(__name__)
 INTERPOLATIONS = {"nearest": 0, "linear": 1, "line": 2}
 
 
+def chessboard_clearance(blocking) -> np.ndarray:
+    """uint8 min(255, chessboard distance in cells to the nearest blocking cell): the build's
+    clearance (``kernels.build_kernel``) in one byte per cell, no int32 temporaries."""
+    blocking = np.ascontiguousarray(blocking, dtype=bool)
+    if not HAVE_NUMBA:  # pragma: no cover
+        return chessboard_clearance_numpy(blocking)
+    out = np.empty(blocking.shape, dtype=np.uint8)
+    K.chessboard_kernel(blocking, out)
+    return out
+
+
+def chessboard_clearance_numpy(blocking) -> np.ndarray:
+    """The reference of ``chessboard_clearance`` (scipy; int32 temporaries)."""
+    from scipy.ndimage import distance_transform_cdt
+    return np.minimum(distance_transform_cdt(~np.asarray(blocking, dtype=bool), metric="chessboard"),
+                      255).astype(np.uint8)
+
+
 class LookupTableRayCaster(RayCaster):
     """Ranges from a precomputed (free cell x heading bin) table; see the module docstring.
 
@@ -149,9 +167,8 @@ class LookupTableRayCaster(RayCaster):
         th = self.bin_angles
         table = np.empty((rows.size, self.theta_bins), dtype=np.uint16)
         if self.use_numba:
-            from scipy.ndimage import distance_transform_cdt
             # chessboard distance: a lower bound of the Euclidean one, so the jumps stay safe
-            clearance = np.minimum(distance_transform_cdt(~self.blocking, metric="chessboard"), 255).astype(np.uint8)
+            clearance = chessboard_clearance(self.blocking)
             rows, cols, cos_k, sin_k = rows.astype(np.int64), cols.astype(np.int64), np.cos(th), np.sin(th)
             jump = np.abs(np.abs(cos_k) - np.abs(sin_k)) > 1e-9  # not along an exact diagonal
 

@@ -35,68 +35,15 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.raycast import kernels as K
 from localization.core.raycast.exact import RayCaster
 from localization.core.raycast.kernels import HAVE_NUMBA, TABLE_MAX_UNITS
-from localization.core.raycast.lookup_table import (
+from localization.core.raycast.lookup_table import (  # noqa: F401 - chessboard_*: re-exported
     BUILD_THREADS,
     DEFAULT_THETA_BINS,
     LookupTableRayCaster,
+    chessboard_clearance,
+    chessboard_clearance_numpy,
 )
 
 DEFAULT_TILE_CELLS = 32  # cells per tile side (1.6 m at 0.05 m/cell)
-
-if HAVE_NUMBA:
-    from numba import njit
-
-    @njit(cache=True, nogil=True)
-    def _chessboard_kernel(blocking, out):  # pragma: no cover - compiled
-        """Two-pass chamfer with unit 8-neighbour steps: out = min(255, chessboard distance to the
-        nearest blocking cell), as ``scipy.ndimage.distance_transform_cdt(~blocking, "chessboard")``."""
-        h, w = blocking.shape
-        for i in range(h):
-            for j in range(w):
-                if blocking[i, j]:
-                    out[i, j] = 0
-                    continue
-                d = 255
-                if i > 0:
-                    for dj in (-1, 0, 1):
-                        jj = j + dj
-                        if 0 <= jj < w and out[i - 1, jj] + 1 < d:
-                            d = out[i - 1, jj] + 1
-                if j > 0 and out[i, j - 1] + 1 < d:
-                    d = out[i, j - 1] + 1
-                out[i, j] = d
-        for i in range(h - 1, -1, -1):
-            for j in range(w - 1, -1, -1):
-                d = out[i, j]
-                if d == 0:
-                    continue
-                if i < h - 1:
-                    for dj in (-1, 0, 1):
-                        jj = j + dj
-                        if 0 <= jj < w and out[i + 1, jj] + 1 < d:
-                            d = out[i + 1, jj] + 1
-                if j < w - 1 and out[i, j + 1] + 1 < d:
-                    d = out[i, j + 1] + 1
-                out[i, j] = d
-
-
-def chessboard_clearance(blocking) -> np.ndarray:
-    """uint8 min(255, chessboard distance in cells to the nearest blocking cell): the build's
-    clearance (``kernels.build_kernel``) in one byte per cell, no int32 temporaries."""
-    blocking = np.ascontiguousarray(blocking, dtype=bool)
-    if not HAVE_NUMBA:  # pragma: no cover
-        return chessboard_clearance_numpy(blocking)
-    out = np.empty(blocking.shape, dtype=np.uint8)
-    _chessboard_kernel(blocking, out)
-    return out
-
-
-def chessboard_clearance_numpy(blocking) -> np.ndarray:
-    """The reference of ``chessboard_clearance`` (scipy; int32 temporaries)."""
-    from scipy.ndimage import distance_transform_cdt
-    return np.minimum(distance_transform_cdt(~np.asarray(blocking, dtype=bool), metric="chessboard"),
-                      255).astype(np.uint8)
-
 
 class TiledLookupTableRayCaster(LookupTableRayCaster):
     """``LookupTableRayCaster`` whose table rows are built per tile on first use (module docstring)."""

@@ -1,0 +1,148 @@
+"""Compile the hot kernels in a short-lived process, so a localizer only loads them.
+
+numba compiles a kernel on its first call and keeps what the compilation allocated (LLVM modules,
+type tables) for the life of the process: for the beam model's kernels ~35 MB more than loading
+the same machine code from numba's on-disk cache (``cache=True``; docs/performance.md has the
+figures). A node that compiles its own kernels on the first start ever carries that for its whole
+run, on top of the range table. So, before a localizer prepares its first map,
+``ensure_compiled(params)`` checks numba's cache index of each kernel those parameters use; when
+one is missing (a fresh install, or changed source) it runs
+
+    python -m localization.core.compile_cache '<parameters as JSON>'
+
+which builds a ``Localizer`` with the same parameters on a tiny synthetic map and runs one
+odometry and one scan through it (every kernel compiled with the very types the real run uses,
+and written to the cache), then exits, returning its memory. The caller then loads the kernels
+from the cache. When the cache cannot be written (the check still fails afterwards) the caller
+compiles in-process, as before, after one log line. ``LOCALIZATION_KERNELS_IN_PROCESS=1`` turns
+the child off (compile in-process).
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+_MOTION = [("localization.core.motion", "_move_kernel"), ("localization.core.filter.resampling", "resample_kernel")]
+_TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
+          ("localization.core.raycast.kernels", "chessboard_kernel")]
+_BEAM = [("localization.core.sensors.beam", "_fused_kernel")]
+_LIKELIHOOD_FIELD = [("localization.core.sensors.likelihood_field", "_lf_kernel")]
+_BEAMSKIP = [("localization.core.sensors.likelihood_field", "_lf_beamskip_kernel"),
+             ("localization.core.sensors.likelihood_field", "_masked_sum")]
+
+_checked: set = set()  # kernel sets already made sure of in this process
+
+
+def kernels_for(params) -> list[tuple[str, str]]:
+    """(module, name) of the compiled kernels a localizer with ``params`` runs on every scan."""
+    if params.sensor_model == "likelihood_field":
+        return _MOTION + _LIKELIHOOD_FIELD + (_BEAMSKIP if params.do_beamskip else [])
+    if params.ray_caster in ("lookup_table", "lookup_table_exact"):
+        return _MOTION + _TABLE + _BEAM
+    return _MOTION
+
+
+def is_cached(module: str, name: str) -> bool | None:
+    """Does numba's on-disk cache hold a current compilation of this kernel? None: cannot tell
+    (numba missing, no ``cache=True``, or numba's internals changed)."""
+    try:
+        dispatcher = getattr(importlib.import_module(module), name)
+        cache_file = dispatcher._cache._cache_file
+        return bool(cache_file._load_index())  # {} when missing or stale (source changed)
+    except Exception:  # noqa: BLE001 - any surprise means "unknown": compile in-process
+        return None
+
+
+def ensure_compiled(params, logger=None) -> str:
+    """Make sure the kernels ``params`` use are in numba's cache (see the module docstring).
+    Returns what happened: "cached", "compiled" (by a child process), "in-process" or "unknown"."""
+    logger = logger or log
+    kernels = tuple(kernels_for(params))
+    if kernels in _checked or os.environ.get("LOCALIZATION_KERNELS_IN_PROCESS") == "1":
+        return "in-process"
+    _checked.add(kernels)
+    state = [is_cached(m, n) for m, n in kernels]
+    if any(s is None for s in state):
+        return "unknown"
+    if all(state):
+        return "cached"
+    t0 = time.perf_counter()
+    logger.info("compiling the filter's kernels into numba's cache (first start after an install or an "
+                "update; a separate process, so this one keeps only the compiled code) ...")
+    cmd = [sys.executable, "-m", "localization.core.compile_cache", json.dumps(dict(params))]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+        failed = out.returncode != 0
+        detail = (out.stderr or "").strip().splitlines()[-1:] if failed else []
+    except (OSError, subprocess.SubprocessError) as exc:
+        failed, detail = True, [repr(exc)]
+    if failed or not all(is_cached(m, n) for m, n in kernels):
+        logger.warning("could not compile the kernels into numba's cache (%s); compiling them in this process",
+                       detail[0] if detail else "cache not writable?")
+        return "in-process"
+    logger.info("kernels compiled and cached in %.1f s", time.perf_counter() - t0)
+    return "compiled"
+
+
+def tiny_map():
+    """A 60 × 60-cell room (0.05 m cells) with a pillar: the smallest map that exercises every kernel."""
+    from localization.core.occupancy_map import OccupancyMap
+    data = np.zeros((60, 60), dtype=np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    data[25:35, 25:35] = 100
+    return OccupancyMap(data=data, resolution=0.05, origin=(0.0, 0.0, 0.0))
+
+
+def compile_kernels(params) -> None:
+    """Run a localizer with ``params`` on ``tiny_map`` through one odometry and one scan (the table is
+    built, never read from or written to the table cache)."""
+    from localization.core.localizer import Localizer
+    from localization.core.odometry import TwistData
+    from localization.core.raycast import make_ray_caster
+    from localization.core.raycast.lookup_table import LookupTableRayCaster
+    from localization.core.scan import ScanData
+    from localization.core.sensors.likelihood_field import LikelihoodFieldModel
+
+    params = dict(params, num_particles=50, global_localization=False, adaptive_particles=False,
+                  update_min_distance=0.0, update_min_angle=0.0)
+    from localization.core.parameters import Parameters
+    loc = Localizer(Parameters(params))
+    occupancy_map = tiny_map()
+    sensor = loc.filter.sensor_model
+    if isinstance(sensor, LikelihoodFieldModel):
+        caster = sensor.prepare(occupancy_map)
+    elif sensor.ray_caster_kind in ("lookup_table", "lookup_table_exact"):
+        caster = LookupTableRayCaster(occupancy_map, sensor.z_max * occupancy_map.resolution,
+                                      sensor.scan_theta_discretization,
+                                      refine=1.0 if sensor.ray_caster_kind == "lookup_table_exact" else 0.0)
+        caster.warm_up()
+    else:
+        caster = make_ray_caster(sensor.ray_caster_kind, occupancy_map, sensor.z_max * occupancy_map.resolution)
+    loc.set_map(occupancy_map, caster)
+    loc.set_initial_pose(np.array([1.0, 1.0, 0.0]), stamp=0.0)
+    loc.on_odometry(TwistData(0.0, 0.5, 0.0, 0.1))
+    loc.on_odometry(TwistData(0.02, 0.5, 0.0, 0.1))
+    n = 1081
+    ranges = np.full(n, 1.0)
+    inc = 4.71238898 / (n - 1)
+    loc.on_scan(ScanData(0.02, ranges, -2.35619449, 2.35619449, inc, 0.02, 30.0))
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    from localization.core.parameters import Parameters
+    compile_kernels(Parameters(json.loads(argv[0]) if argv else {}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,46 @@
+"""Kernels compiled in a short-lived child process into numba's cache (core/compile_cache.py)."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from localization.core import compile_cache as cc
+from localization.core.parameters import Parameters
+
+PROBE = """
+import json, logging, sys
+from localization.core import compile_cache as cc
+from localization.core.parameters import Parameters
+p = Parameters(json.loads(sys.argv[1]))
+before = [cc.is_cached(m, n) for m, n in cc.kernels_for(p)]
+print(json.dumps({"before": before, "first": cc.ensure_compiled(p)}))
+"""
+
+
+def run_probe(params: dict, numba_dir) -> dict:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(numba_dir))
+    env.pop("LOCALIZATION_KERNELS_IN_PROCESS", None)
+    out = subprocess.run([sys.executable, "-c", PROBE, json.dumps(params)], env=env, capture_output=True, text=True,
+                         timeout=300, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_every_listed_kernel_exists_and_has_a_disk_cache():
+    """kernels_for names real cache=True dispatchers for each sensor model (None would mean a
+    renamed kernel or changed numba internals, which would silently compile in-process)."""
+    for params in (Parameters(), Parameters(ray_caster="lookup_table_exact"),
+                   Parameters(sensor_model="likelihood_field", do_beamskip=True)):
+        assert all(cc.is_cached(m, n) is not None for m, n in cc.kernels_for(params))
+
+
+def test_a_cold_cache_is_filled_by_a_child_then_only_loaded(tmp_path):
+    first = run_probe({}, tmp_path)
+    assert first["before"] == [False] * len(cc.kernels_for(Parameters()))
+    assert first["first"] == "compiled"
+    second = run_probe({}, tmp_path)
+    assert second["before"] == [True] * len(cc.kernels_for(Parameters())) and second["first"] == "cached"
+    # another model's kernels are not in the cache yet: compiled by a child too
+    lf = run_probe({"sensor_model": "likelihood_field"}, tmp_path)
+    assert lf["first"] == "compiled"
