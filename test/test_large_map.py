@@ -144,3 +144,46 @@ def test_the_localizer_takes_range_table_lazy_cells_on_both_map_paths():
     eager = Localizer(Parameters(ray_caster="lookup_table", random_seed=0, num_particles=200))
     eager.set_map(m)
     assert type(eager.filter.sensor_model.ray_caster) is LookupTableRayCaster  # small maps: the full table
+
+
+def _rss_kb() -> int:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS"))
+
+
+def test_released_tiles_give_memory_back_and_are_rebuilt_equal():
+    m = tiled_map(small_tiled_map(), 4, 4)  # 16 x the room: a table of several MB
+    full = LookupTableRayCaster(m, 3.0, 72)
+    tiled = TiledLookupTableRayCaster(m, 3.0, 72, tile=16)
+    before = _rss_kb()
+    tiled.build_table()
+    grown = _rss_kb() - before
+    assert grown > 0.5 * tiled.table.nbytes / 1024  # the rows are resident once built
+    everything = np.flatnonzero(tiled.built)
+    assert tiled.release_tiles(everything) == np.count_nonzero(np.diff(tiled.tile_start))
+    assert tiled.tiles_built == 0
+    assert _rss_kb() - before < 0.3 * grown  # given back (whole pages inside each tile)
+    poses = m.sample_free_poses(300, np.random.default_rng(4))
+    angles = np.linspace(-2.3, 2.3, 31)
+    assert np.array_equal(tiled.cast(poses, angles), full.cast(poses, angles))  # rebuilt where needed, equal
+
+
+def test_global_seed_on_a_tiled_table_keeps_only_the_tiles_it_had():
+    from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
+    m = small_tiled_map()
+    lazy = BeamModel(ray_caster="lookup_table", range_table_lazy_cells=0, table_width=61)
+    lazy.set_map(m)
+    eager = BeamModel(ray_caster="lookup_table", table_width=61)
+    eager.set_map(m)
+    truth = m.sample_free_poses(1, np.random.default_rng(5))
+    angles = np.linspace(-2.3, 2.3, 60)
+    ranges = ExactRayCaster(m, 3.0).cast(truth, angles)[0]
+    p = ScanSeedParams(global_seed_step=0.2, global_seed_headings=36, global_seed_beams=30,
+                       global_seed_candidates=200)
+    built_before = lazy.ray_caster.built.copy()
+    got = seed_from_scan(m, lazy, ranges, angles, 500, np.random.default_rng(6), p, chunk=2000)
+    assert np.array_equal(lazy.ray_caster.built, built_before)  # the lattice's tiles were given back
+    want = seed_from_scan(m, eager, ranges, angles, 500, np.random.default_rng(6), p, chunk=2000)
+    # the same candidates as with the full table (order of equal scores aside)
+    assert np.allclose(np.sort(got.candidate_log_likelihood), np.sort(want.candidate_log_likelihood))
+    assert got.lattice_poses == want.lattice_poses

@@ -70,9 +70,11 @@ def drive_config(occupancy_map, duration: float, seed: int = 7, tile=(1, 1)):
     return replace(cfg, start=tuple(start), waypoints=waypoints)
 
 
-def probe(nx: int, ny: int, recording: str, particles: int) -> dict:
+def probe(nx: int, ny: int, recording: str, particles: int, init: str = "pose") -> dict:
     """In this (fresh) process: init time on the tiled map, then a drive (a recording simulated
-    by the parent, so the simulator's memory is not counted) and the process's peak memory."""
+    by the parent, so the simulator's memory is not counted) and the process's peak memory.
+    ``init``: "pose" (the drive's initial pose) or "global" (no pose: global localization over
+    the whole map from the first scan; reports when the error first stays below 0.3 m)."""
     import pickle
 
     from localization.benchmarks.robustness import ct_errors, run_recording
@@ -99,8 +101,19 @@ def probe(nx: int, ny: int, recording: str, particles: int) -> dict:
     result = {"cells": int(big.data.size), "free_cells": int(len(big.free_cells)), "imports_s": t_imports,
               "set_map_s": t1 - t0, "first_scan_s": t3 - t2, "init_s": (t1 - t0) + (t3 - t2),
               "caster": type(caster).__name__, "peak_rss_init_mb": _vm_hwm_mb()}
-    run = run_recording(rec, loc, init="pose")
-    cmp = ct_errors(rec, run)
+    if init == "global":
+        from localization.benchmarks.robustness import settle_time
+        loc = Localizer(Parameters(num_particles=particles, random_seed=0))  # the map's caster is shared
+        loc.set_map(big)
+        t4 = time.perf_counter()
+        run = run_recording(rec, loc, init="global")
+        cmp = ct_errors(rec, run)
+        result.update(global_run_s=time.perf_counter() - t4,
+                      global_converged_s=settle_time(cmp, float(rec.odometry.t[0])),
+                      global_final_error_m=float(cmp.ct_error[-1]))
+    else:
+        run = run_recording(rec, loc, init="pose")
+        cmp = ct_errors(rec, run)
     result.update(peak_rss_mb=_vm_hwm_mb(), drive_s=float(rec.duration), ct_mean_m=float(cmp.ct_error.mean()),
                   ct_p95_m=float(np.percentile(cmp.ct_error, 95)), recoveries=run.recoveries,
                   tiles_built=getattr(caster, "tiles_built", None), rows_built=getattr(caster, "rows_built", None),
@@ -152,6 +165,8 @@ def run(nx: int = 3, ny: int = 3, drive_s: float = 20.0, particles: int = 2000, 
         cold = _run_probe(args, env)
         say("large map: cached probe ...")
         cached = _run_probe(args, env)
+        say("large map: global localization (no initial pose) over the whole map ...")
+        glob = _run_probe(args + ["--init", "global"], env)
         say("large map: the same drive on the single map ...")
         single = _run_probe(["--single", "--drive", str(drive_s), "--particles", str(particles)], env)
     return {"tiles": [nx, ny], "cells": cold["cells"], "free_cells": cold["free_cells"], "caster": cold["caster"],
@@ -160,7 +175,9 @@ def run(nx: int = 3, ny: int = 3, drive_s: float = 20.0, particles: int = 2000, 
                                cached["peak_rss_init_mb"]),
             "ct_mean_m": cached["ct_mean_m"], "ct_p95_m": cached["ct_p95_m"], "single_ct_mean_m": single["ct_mean_m"],
             "single_ct_p95_m": single["ct_p95_m"], "drive_s": drive_s, "particles": particles,
-            "cold": cold, "cached": cached}
+            "global_peak_rss_mb": glob["peak_rss_mb"], "global_converged_s": glob["global_converged_s"],
+            "global_final_error_m": glob["global_final_error_m"], "global_tile_build_s": glob["tile_build_s"],
+            "global_run_s": glob["global_run_s"], "cold": cold, "cached": cached, "global": glob}
 
 
 def format_report(r: dict) -> str:
@@ -183,6 +200,11 @@ def format_report(r: dict) -> str:
         f"  accuracy, the same {r['drive_s']:.0f} s drive: CT mean {r['ct_mean_m']:.3f} m p95 {r['ct_p95_m']:.3f} m "
         f"on the tiled map vs {r['single_ct_mean_m']:.3f} m / {r['single_ct_p95_m']:.3f} m on the single map "
         f"({w['recoveries']} recoveries)  {verdict[ok['acc']]}",
+        f"  global localization (no initial pose) over the whole map: peak memory {r['global_peak_rss_mb']:.0f} MB "
+        f"(target <= {PEAK_TARGET_MB:g})  {verdict[r['global_peak_rss_mb'] <= PEAK_TARGET_MB]}; below 0.3 m after "
+        + ("never" if r["global_converged_s"] is None else f"{r['global_converged_s']:.1f} s of driving")
+        + f", final error {r['global_final_error_m']:.2f} m; tiles built {r['global_tile_build_s']:.1f} s, "
+        f"run {r['global_run_s']:.1f} s in all",
     ])
 
 
@@ -196,11 +218,12 @@ def main(argv=None) -> int:
     ap.add_argument("--probe", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--recording", help=argparse.SUPPRESS)
     ap.add_argument("--single", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--init", choices=("pose", "global"), default="pose", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     if args.probe:
         print(json.dumps(single_map_accuracy(args.drive, args.particles) if args.single
-                         else probe(args.nx, args.ny, args.recording, args.particles)))
+                         else probe(args.nx, args.ny, args.recording, args.particles, args.init)))
         return 0
     progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
     r = run(args.nx, args.ny, args.drive, args.particles, progress)

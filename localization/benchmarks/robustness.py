@@ -3,6 +3,8 @@
     python -m localization.benchmarks.robustness            # global, kidnap, normal trials, 5-min drive, corrupted bag
     python -m localization.benchmarks.robustness --quick    # fewer runs, shorter drive (a smoke test)
     python -m localization.benchmarks.robustness --long     # the drive lasts the full 30 minutes
+    python -m localization.benchmarks.robustness --only global --map building_31
+        # global localization in another building, on a closed route built from its map (auto_loop)
 
 Every run is simulated on the Stata basement map (``localization.simulator``, fixed seeds) and
 fed, message by message in stamp order, to the very ``Localizer`` the node and
@@ -47,7 +49,7 @@ from localization.eval import metrics as M
 from localization.eval.corrupt import corrupt_bag
 from localization.eval.datasets import _LOOP, REPORT_TRIALS, trial_config
 from localization.eval.feed import Feeder, recording_events
-from localization.sim import Recording, SimConfig, densify, simulate
+from localization.sim import Recording, SimConfig, clearance_grid, densify, simulate
 
 TARGET_M = 0.3
 STATA = "stata_basement"
@@ -108,21 +110,26 @@ def settle_time(cmp: M.TruthComparison, t_from: float, threshold: float = TARGET
 # --------------------------------------------------------------------------------------------
 
 
-def loop_path() -> np.ndarray:
-    return densify(_LOOP, 0.05, closed=True)
+def loop_path(route=None) -> np.ndarray:
+    """The basement loop (or ``route``, a closed waypoint route) every 5 cm."""
+    return densify(_LOOP if route is None else route, 0.05, closed=True)
 
 
-def loop_pose(index: int) -> tuple:
-    """A pose on the loop's centre line, heading along it."""
-    path = loop_path()
+def loop_pose(index: int, route=None) -> tuple:
+    """A pose on the loop's (or ``route``'s) centre line, heading along it."""
+    path = loop_path(route)
     i = index % len(path)
     d = path[(i + 5) % len(path)] - path[i]
     return (float(path[i, 0]), float(path[i, 1]), float(math.atan2(d[1], d[0])))
 
 
-def loop_config(start_index: int, duration: float, seed: int, **kw) -> SimConfig:
+def loop_config(start_index: int, duration: float, seed: int, route=None, map_name: str = STATA, **kw) -> SimConfig:
+    """The basement loop trial (or the closed ``route`` through map ``map_name``) from point
+    ``start_index`` of the 5 cm path: 2 m/s, odometry noise 0.1, no bias."""
     base = trial_config("loop_noise0.3_biased")
-    return replace(base, start=loop_pose(start_index), duration=duration, seed=seed, speed=2.0,
+    if route is not None:
+        base = replace(base, map=map_name, waypoints=tuple(map(tuple, np.asarray(route, dtype=float).tolist())))
+    return replace(base, start=loop_pose(start_index, route), duration=duration, seed=seed, speed=2.0,
                    odom_noise=0.1, speed_scale=1.0, yaw_rate_bias=0.0, initial_offset=(0.0, 0.0, 0.0), **kw)
 
 
@@ -139,16 +146,17 @@ def _line(ok: bool, text: str) -> str:
 
 
 def bench_global(occ, runs: int, params: Parameters, drive_s: float = 20.0, log=print, method: str = "scan",
-                 target_s: float = 5.0, target_runs: int | None = None) -> bool:
+                 target_s: float = 5.0, target_runs: int | None = None, route=None, map_name: str = STATA) -> bool:
     """``runs`` global starts with ``global_init: method``; PASS when ``target_runs`` (default: all)
-    converge below 0.3 m within ``target_s`` seconds of driving."""
-    n_path = len(loop_path())
+    converge below 0.3 m within ``target_s`` seconds of driving. The starts are spread along the
+    basement loop, or along ``route`` (a closed route through ``occ``, named ``map_name``)."""
+    n_path = len(loop_path(route))
     params = replace_params(params, global_init=method)
     target_runs = runs if target_runs is None else target_runs
     times = []
     for r in range(runs):
         start = int(r * n_path / runs) + 37
-        rec = simulate(loop_config(start, drive_s + 2.0, seed=100 + r), occ)
+        rec = simulate(loop_config(start, drive_s + 2.0, seed=100 + r, route=route, map_name=map_name), occ)
         loc = Localizer(replace_params(params, random_seed=100 + r), logging.getLogger("bench.global"))
         loc.set_map(occ)
         run = run_recording(rec, loc, init="global")
@@ -277,6 +285,147 @@ def bench_long(occ, minutes: float, params: Parameters, piece_s: float = 60.0, l
 
 
 # --------------------------------------------------------------------------------------------
+# Other maps: a closed route built from the map's free space (no hand-picked waypoints)
+# --------------------------------------------------------------------------------------------
+
+
+def _clearance_graph(clear: np.ndarray, keep: np.ndarray, cell: float, penalty: np.ndarray | None = None):
+    """8-connected graph of the ``keep`` cells; an edge costs its length × (1 + 1 m / clearance)
+    (so shortest paths keep to the corridors' centre lines), × 50 where ``penalty`` is set."""
+    from scipy.sparse import coo_matrix
+    rows, cols = np.nonzero(keep)
+    idx = -np.ones(keep.shape, dtype=np.int64)
+    idx[rows, cols] = np.arange(len(rows))
+    h, w = keep.shape
+    src, dst, cost = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        r2, c2 = rows + dr, cols + dc
+        ok = (r2 >= 0) & (r2 < h) & (c2 >= 0) & (c2 < w)
+        ok[ok] &= keep[r2[ok], c2[ok]]
+        ra, ca, rb, cb = rows[ok], cols[ok], r2[ok], c2[ok]
+        wt = math.hypot(dr, dc) * cell * (1.0 + 2.0 / (clear[ra, ca] + clear[rb, cb]))
+        if penalty is not None:
+            wt = wt * np.where(penalty[ra, ca] | penalty[rb, cb], 50.0, 1.0)
+        src.append(idx[ra, ca])
+        dst.append(idx[rb, cb])
+        cost.append(wt)
+    a, b, wt = np.concatenate(src), np.concatenate(dst), np.concatenate(cost)
+    n = len(rows)
+    graph = coo_matrix((np.concatenate([wt, wt]), (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n))
+    return graph.tocsr(), rows, cols
+
+
+def _back_path(pred: np.ndarray, src: int, dst: int) -> list:
+    out = [dst]
+    while out[-1] != src:
+        out.append(int(pred[out[-1]]))
+    return out[::-1]
+
+
+def _cut_spikes(pts: np.ndarray, close: float = 0.6, min_arc: float = 2.0) -> np.ndarray:
+    """Remove out-and-back detours from a closed polyline: a stretch longer than ``min_arc`` (and
+    shorter than half the loop) whose two ends are within ``close`` of each other."""
+    changed = True
+    while changed:
+        changed = False
+        n = len(pts)
+        seg = np.hypot(*np.diff(pts, axis=0, append=pts[:1]).T)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        total = s[-1]
+        for i in range(n):
+            arc = (s[np.arange(n)] - s[i]) % total  # arc length from i forward to every j
+            d = np.hypot(*(pts - pts[i]).T)
+            cand = np.nonzero((d < close) & (arc > min_arc) & (arc < 0.5 * total))[0]
+            if cand.size:
+                j = int(cand[np.argmax(arc[cand])])
+                keep = np.ones(n, dtype=bool)
+                k = (i + 1) % n
+                while k != j:
+                    keep[k] = False
+                    k = (k + 1) % n
+                pts = pts[keep]
+                changed = True
+                break
+    return pts
+
+
+def enclosed(occ) -> np.ndarray:
+    """Cells inside the building: a ray from the cell in at most one of 8 directions (rows,
+    columns, diagonals) leaves the map without meeting a wall (walls thickened by one cell). Maps
+    that mark the outside of the building free (``building_31``) otherwise invite routes outside."""
+    from scipy import ndimage
+    wall = ndimage.binary_dilation(~occ.free, structure=np.ones((3, 3)))
+    h, w = wall.shape
+    escapes = np.zeros(wall.shape, dtype=np.int8)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == dc == 0:
+                continue
+            if dr == 0:  # along the row: cumulative "a wall so far" from the far end
+                src = wall if dc < 0 else wall[:, ::-1]
+                hit = np.logical_or.accumulate(src, axis=1)
+                hit = hit if dc < 0 else hit[:, ::-1]
+            else:
+                hit = np.zeros_like(wall)
+                order = range(h) if dr < 0 else range(h - 1, -1, -1)
+                prev = np.zeros(w, dtype=bool)  # beyond the edge: no wall
+                for r in order:
+                    shifted = np.zeros(w, dtype=bool)
+                    if dc > 0:
+                        shifted[:-1] = prev[1:]
+                    elif dc < 0:
+                        shifted[1:] = prev[:-1]
+                    else:
+                        shifted = prev
+                    hit[r] = wall[r] | shifted
+                    prev = hit[r]
+            escapes += ~hit
+    return escapes <= 1
+
+
+def auto_loop(occ, path_clearance: float = 0.3, end_clearance: float = 0.4, spacing: float = 1.0,
+              step: int = 2) -> np.ndarray:
+    """A closed route (waypoints ~``spacing`` m apart) through ``occ``'s free space, built from its
+    clearance grid (``localization.sim.clearance_grid``) alone. On the cells inside the building
+    (``enclosed``) with clearance >= ``path_clearance`` (the largest connected piece, every
+    ``step``-th cell): the two cells of clearance >= ``end_clearance`` farthest apart along
+    corridors, A and B; a clearance-weighted shortest path A -> B, then B -> A again avoiding
+    (x 50 cost) 1.2 m around the first; the two make a loop, with out-and-back detours cut away."""
+    from scipy import ndimage
+    from scipy.sparse.csgraph import dijkstra
+    cell = occ.resolution * step
+    clear = clearance_grid(occ)[::step, ::step]
+    nav = (clear >= path_clearance) & enclosed(occ)[::step, ::step]
+    lab, n = ndimage.label(nav, structure=np.ones((3, 3)))
+    if n == 0:
+        raise ValueError(f"no free space with clearance >= {path_clearance} m in map {occ.source}")
+    keep = lab == 1 + int(np.argmax(ndimage.sum(nav, lab, range(1, n + 1))))
+    graph, rows, cols = _clearance_graph(clear, keep, cell)
+    wide = clear[rows, cols] >= end_clearance
+    seed = int(np.argmax(clear[rows, cols]))
+    dist = dijkstra(graph, indices=seed)
+    a = int(np.argmax(np.where(wide & np.isfinite(dist), dist, -1.0)))
+    dist, pred = dijkstra(graph, indices=a, return_predecessors=True)
+    b = int(np.argmax(np.where(wide & np.isfinite(dist), dist, -1.0)))
+    first = _back_path(pred, a, b)
+    mark = np.zeros_like(keep)
+    mark[rows[first], cols[first]] = True
+    penalty = ndimage.distance_transform_edt(~mark) * cell < 1.2
+    graph2, _, _ = _clearance_graph(clear, keep, cell, penalty)
+    _, pred2 = dijkstra(graph2, indices=b, return_predecessors=True)
+    second = _back_path(pred2, b, a)
+    cells = first + second[1:-1]
+    colrow = np.stack([cols[cells], rows[cells]], axis=1) * step + (step - 1) / 2.0
+    pts = _cut_spikes(occ.grid_to_world(colrow))
+    # waypoints every ~spacing metres of arc
+    seg = np.hypot(*np.diff(pts, axis=0, append=pts[:1]).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)[:-1]])
+    n_wp = max(4, int(round((s[-1] + seg[-1]) / spacing)))
+    picks = np.searchsorted(s, np.arange(n_wp) * (s[-1] + seg[-1]) / n_wp)
+    return np.round(pts[np.unique(np.clip(picks, 0, len(pts) - 1))], 3)
+
+
+# --------------------------------------------------------------------------------------------
 # Corrupted bags (localization.eval.corrupt)
 # --------------------------------------------------------------------------------------------
 
@@ -319,22 +468,37 @@ def main(argv=None) -> int:
     ap.add_argument("--only", choices=("global", "kidnap", "normal", "long", "corrupted"), action="append",
                     help="run only these benchmarks (repeatable)")
     ap.add_argument("--particles", type=int, help="global_num_particles (default: the parameter's default)")
+    ap.add_argument("--map", default=STATA, metavar="NAME",
+                    help=f"map (default {STATA}); another map runs only the global scenario, on a closed route "
+                         "built from the map's free space (auto_loop), with the same parameters")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     overrides = {} if args.particles is None else {"global_num_particles": args.particles}
     params = bench_params(**overrides)
-    occ = load_map(STATA)
+    occ = load_map(args.map)
     runs = 3 if args.quick else 10
     only = set(args.only or ("global", "kidnap", "normal", "long", "corrupted"))
+    route = None
+    if args.map != STATA:
+        skipped = sorted(only - {"global"})
+        if skipped:
+            print(f"skipped on {args.map}: {', '.join(skipped)} (only the global scenario runs on maps other than "
+                  f"{STATA})", flush=True)
+        only &= {"global"}
+        route = auto_loop(occ)
+        length = float(np.hypot(*np.diff(route, axis=0, append=route[:1]).T).sum())
+        print(f"route on {args.map}: closed, {len(route)} waypoints, {length:.0f} m (auto_loop: corridor centre "
+              "lines from the clearance grid)", flush=True)
     t0 = time.perf_counter()
     results = {}
-    print(f"robustness benchmarks on {STATA}: {params.num_particles} particles tracking, "
+    print(f"robustness benchmarks on {args.map}: {params.num_particles} particles tracking, "
           f"{params.global_num_particles} when global, {params.ray_caster} ray caster", flush=True)
     if "global" in only:
         results["global"] = bench_global(occ, runs, params, log=lambda s: print(s, flush=True), method="scan",
-                                         target_s=5.0)
+                                         target_s=5.0, route=route, map_name=args.map)
         results["global_uniform"] = bench_global(occ, runs, params, log=lambda s: print(s, flush=True),
-                                                 method="uniform", target_s=20.0, target_runs=math.ceil(0.8 * runs))
+                                                 method="uniform", target_s=20.0, target_runs=math.ceil(0.8 * runs),
+                                                 route=route, map_name=args.map)
     if "kidnap" in only:
         results["kidnap"] = bench_kidnap(occ, runs, params, log=lambda s: print(s, flush=True))
     if "normal" in only:

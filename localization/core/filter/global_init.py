@@ -27,7 +27,10 @@ hypotheses the single scan cannot tell apart (a self-similar corridor) alive unt
 disambiguates them.
 
 Cost: (|F| / step²) · H poses × ``beams`` beams through the sensor model, in chunks of
-``chunk`` poses (bounded memory). numpy only (the sensor model brings its compiled kernel).
+``chunk`` poses (bounded memory). With a range table built per tile (large maps) the lattice is
+scored tile by tile and the tiles built only for it are released after each chunk: the pass
+costs the whole table's build time but only a chunk's tiles of memory. numpy only (the sensor
+model brings its compiled kernel).
 """
 from __future__ import annotations
 
@@ -37,6 +40,7 @@ import numpy as np
 
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
+from localization.core.raycast.tiled_table import TiledLookupTableRayCaster
 
 
 @dataclass(frozen=True)
@@ -98,10 +102,19 @@ def seed_from_scan(occupancy_map: OccupancyMap, sensor_model, ranges, angles, n:
     total = len(xy) * h
     z, a = subset_beams(ranges, angles, int(p.global_seed_beams))
     scores = np.empty(total)
+    # a range table built per tile (large maps): score the lattice tile by tile and give back the
+    # tiles built only for this pass, so its memory is a chunk's tiles, not the whole map's table
+    caster = getattr(sensor_model, "ray_caster", None)
+    tiled = isinstance(caster, TiledLookupTableRayCaster)
+    if tiled:
+        xy = xy[np.argsort(caster.tile_ids(xy), kind="stable")]
+        kept = caster.built.copy()
     for start in range(0, total, chunk):  # pose i: position i // h, heading i % h
         idx = np.arange(start, min(total, start + chunk))
         poses = np.column_stack([xy[idx // h], theta[idx % h]])
         scores[start:start + idx.size] = sensor_model.log_likelihood(poses, z, a)
+        if tiled:
+            caster.release_tiles(np.flatnonzero(caster.built & ~kept))
     scores[~np.isfinite(scores)] = -np.inf
     k = int(min(max(1, p.global_seed_candidates), total))
     best = np.argpartition(-scores, k - 1)[:k]

@@ -25,6 +25,7 @@ time and memory, spread over the first scan).
 """
 from __future__ import annotations
 
+import mmap
 import os
 import threading
 import time
@@ -78,7 +79,11 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         np.cumsum(counts, out=self.tile_start[1:])
         self.built = counts == 0  # a tile without free cells has nothing to build
         self.units_per_cell = TABLE_MAX_UNITS / self.max_cells
-        self.table = np.zeros((self.num_free, theta_bins), dtype=np.uint16)  # pages mapped when written
+        # an anonymous mapping: zero-filled, its pages mapped when first written, and given back to
+        # the system by ``release_tiles`` (madvise DONTNEED: read as zeros again, rebuilt on demand)
+        self._table_buffer = mmap.mmap(-1, max(1, self.num_free * theta_bins * 2))
+        self.table = np.frombuffer(self._table_buffer, dtype=np.uint16,
+                                   count=self.num_free * theta_bins).reshape(self.num_free, theta_bins)
         self._clearance = chessboard_clearance(self.blocking) if self.use_numba else None
         th = self.bin_angles
         self._cos_k, self._sin_k = np.cos(th), np.sin(th)
@@ -124,6 +129,39 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         col = np.floor(gx[ok]).astype(np.int64)
         row = np.floor(gy[ok]).astype(np.int64)
         return np.unique((row // self.tile) * self.tiles_shape[1] + col // self.tile)
+
+    def tile_ids(self, xy) -> np.ndarray:
+        """Tile id of each world point (N, 2) (-1 off the map), as ``tiles_of`` without the unique."""
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        ox, oy, c, s, res, _ = self._map_args
+        dx, dy = xy[:, 0] - ox, xy[:, 1] - oy
+        gx = (c * dx + s * dy) / res
+        gy = (-s * dx + c * dy) / res
+        h, w = self.index.shape
+        out = np.full(len(xy), -1, dtype=np.int64)
+        ok = (gx >= 0.0) & (gx < w) & (gy >= 0.0) & (gy < h)
+        out[ok] = (np.floor(gy[ok]).astype(np.int64) // self.tile) * self.tiles_shape[1] + \
+            np.floor(gx[ok]).astype(np.int64) // self.tile
+        return out
+
+    def release_tiles(self, tiles) -> int:
+        """Give the memory of built tiles back (the whole pages inside each tile's rows) and mark them
+        unbuilt: the next query there builds them again. For passes that touch the whole map once
+        (scoring a global lattice) without keeping it. Returns how many tiles were released."""
+        tiles = np.asarray(tiles, dtype=np.int64).ravel()
+        if tiles.size == 0 or not hasattr(self._table_buffer, "madvise"):
+            return 0
+        page, row_bytes = mmap.PAGESIZE, self.theta_bins * 2
+        released = 0
+        with self._build_lock:
+            for t in tiles[self.built[tiles] & (self.tile_start[tiles + 1] > self.tile_start[tiles])].tolist():
+                a = -(-int(self.tile_start[t]) * row_bytes // page) * page  # whole pages inside the tile
+                b = int(self.tile_start[t + 1]) * row_bytes // page * page
+                if b > a:
+                    self._table_buffer.madvise(mmap.MADV_DONTNEED, a, b - a)
+                self.built[t] = False
+                released += 1
+        return released
 
     def ensure_tiles(self, tiles) -> int:
         """Build the listed tiles not built yet; returns how many were built."""
