@@ -101,7 +101,7 @@ def seed_from_scan(occupancy_map: OccupancyMap, sensor_model, ranges, angles, n:
     theta = np.mod(theta + np.pi, 2.0 * np.pi) - np.pi
     total = len(xy) * h
     z, a = subset_beams(ranges, angles, int(p.global_seed_beams))
-    scores = np.empty(total)
+    k = int(min(max(1, p.global_seed_candidates), total))
     # a range table built per tile (large maps): score the lattice tile by tile and give back the
     # tiles built only for this pass, so its memory is a chunk's tiles, not the whole map's table
     caster = getattr(sensor_model, "ray_caster", None)
@@ -109,18 +109,25 @@ def seed_from_scan(occupancy_map: OccupancyMap, sensor_model, ranges, angles, n:
     if tiled:
         xy = xy[np.argsort(caster.tile_ids(xy), kind="stable")]
         kept = caster.built.copy()
+    # the k best so far (a running top-k: memory O(chunk + k), not O(lattice))
+    best_ll, best = np.empty(0), np.empty(0, dtype=np.int64)
     for start in range(0, total, chunk):  # pose i: position i // h, heading i % h
         idx = np.arange(start, min(total, start + chunk))
         poses = np.column_stack([xy[idx // h], theta[idx % h]])
-        scores[start:start + idx.size] = sensor_model.log_likelihood(poses, z, a)
+        scores = sensor_model.log_likelihood(poses, z, a)
+        scores[~np.isfinite(scores)] = -np.inf
         if tiled:
             caster.release_tiles(np.flatnonzero(caster.built & ~kept))
-    scores[~np.isfinite(scores)] = -np.inf
-    k = int(min(max(1, p.global_seed_candidates), total))
-    best = np.argpartition(-scores, k - 1)[:k]
-    best = best[np.argsort(-scores[best])]
+        if scores.size > k:
+            top = np.argpartition(-scores, k - 1)[:k]
+            scores, idx = scores[top], idx[top]
+        best_ll, best = np.concatenate([best_ll, scores]), np.concatenate([best, idx])
+        if best_ll.size > k:
+            top = np.argpartition(-best_ll, k - 1)[:k]
+            best_ll, best = best_ll[top], best[top]
+    order = np.lexsort((best, -best_ll))  # best first; equal scores in lattice order
+    best, ll = best[order], best_ll[order]
     cand = np.column_stack([xy[best // h], theta[best % h]])
-    ll = scores[best]
     n_uniform = int(round(np.clip(p.global_seed_uniform, 0.0, 1.0) * n)) if np.isfinite(ll[0]) else n
     n_seeded = n - n_uniform
     out = np.empty((n, 3))
