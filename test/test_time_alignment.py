@@ -23,7 +23,8 @@ from localization.core.scan import ScanData
 from localization.core.sensors.beam import BeamModel
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder, recording_events
-from localization.eval.metrics import along_cross_track, compare_to_truth
+from localization.eval.metrics import compare_to_truth
+from localization.eval.reference import track_errors
 
 
 @pytest.fixture(scope="module")
@@ -153,8 +154,8 @@ def _run(rec, params: Parameters):
     t, poses = feeder.log.estimates()
     err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
     late = err.t > 2.0  # after the convergence from the initial offset
-    along, _ = along_cross_track(t[t > 2.0], poses[t > 2.0], rec.truth_t, rec.truth_poses)
-    return float(err.ct_error[late].mean()), float(along.mean())
+    truth = track_errors(t, poses, rec.truth_t, rec.truth_poses)
+    return float(err.ct_error[late].mean()), float(truth.along[truth.t > 2.0].mean())
 
 
 _STATA = {}

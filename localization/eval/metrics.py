@@ -79,24 +79,6 @@ def compare_to_truth(est_t, est_poses, truth_t, truth_poses) -> TruthComparison:
     return TruthComparison(est_t[ok], ct, head)
 
 
-def along_cross_track(est_t, est_poses, truth_t, truth_poses) -> tuple[np.ndarray, np.ndarray]:
-    """Along- and cross-track error (m) of each estimate against the truth interpolated at its
-    stamp: the components of (estimate − truth) along the truth heading θ and across it::
-
-        e_along = Δx cos θ + Δy sin θ        (> 0: ahead of the car)
-        e_cross = −Δx sin θ + Δy cos θ       (> 0: left of the car)
-
-    A filter running late has e_along ≈ −v · lag; in a corridor the scan cannot see it (docs/replay.md)."""
-    est_t = np.asarray(est_t, dtype=float)
-    est_poses = np.asarray(est_poses, dtype=float).reshape(-1, 3)
-    order = np.argsort(truth_t, kind="stable")
-    truth = interpolate_poses(est_t, np.asarray(truth_t, dtype=float)[order], np.asarray(truth_poses)[order])
-    ok = np.all(np.isfinite(truth), axis=1)
-    dx, dy = est_poses[ok, 0] - truth[ok, 0], est_poses[ok, 1] - truth[ok, 1]
-    c, s = np.cos(truth[ok, 2]), np.sin(truth[ok, 2])
-    return dx * c + dy * s, -dx * s + dy * c
-
-
 def error_stats(errors) -> dict:
     """mean, median, p95, max, rms of an error series (NaN-free; empty -> None values)."""
     e = np.asarray(errors, dtype=float)

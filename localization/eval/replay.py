@@ -404,10 +404,6 @@ def compute_metrics(res: ReplayResult) -> dict:
         cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
         out["ct_error_m"] = M.error_stats(cmp.ct_error)
         out["heading_error_mean_abs_rad"] = float(cmp.heading_error.mean()) if cmp.heading_error.size else None
-        along, cross = M.along_cross_track(res.est_t, res.est_poses, res.truth_t, res.truth_poses)  # issue 10
-        out["along_track_vs_truth_m"] = {"mean": float(along.mean()) if along.size else None,
-                                         "median": float(np.median(along)) if along.size else None}
-        out["cross_track_vs_truth_m"] = {"mean_abs": float(np.abs(cross).mean()) if cross.size else None}
         t_start = res.init_t if res.init_t is not None else (float(res.est_t[0]) if len(res.est_t) else None)
         out["time_to_converge_s"] = M.time_to_converge(cmp.t, cmp.ct_error, M.CONVERGENCE_THRESHOLD_M, t_start)
         if res.initial_pose is not None and len(res.truth_t):

@@ -99,9 +99,10 @@ FAST_RUNS = {"fast_aligned": {"odom_time_offset": -0.04},
 
 def fast_table(results: list) -> str:
     def row(name, m):
-        ct, along, cross = m["ct_error_m"], m.get("along_track_vs_truth_m", {}), m.get("cross_track_vs_truth_m", {})
+        ct = m["ct_error_m"]
+        along, cross = m.get("truth_along_track_error_m") or {}, m.get("truth_abs_cross_track_error_m") or {}
         return (f"{name:<16} {_f(ct['mean']):>8} {_f(ct['median']):>7} {_f(ct['p95']):>6} {_f(ct['max']):>6} "
-                f"{_f(along.get('mean'), '+.4f'):>11} {_f(cross.get('mean_abs'), '.4f'):>10}")
+                f"{_f(along.get('mean'), '+.4f'):>11} {_f(cross.get('mean'), '.4f'):>10}")
     return _table(f"{'run':<16} {'mean':>8} {'median':>7} {'p95':>6} {'max':>6} {'mean along':>11} "
                   f"{'|cross|':>10}", results, 16, row)
 
