@@ -89,6 +89,21 @@ def test_initial_pose_nan_outside_and_in_wall(caplog):
     assert "not finite" in caplog.text and "nearest free cell" in caplog.text
 
 
+@pytest.mark.parametrize("variance", [np.nan, np.inf, 0.0, 8.98846567e307, 1e5])
+def test_initial_pose_covariance_that_is_not_a_spread_falls_back_to_the_default(variance, caplog):
+    """A /initialpose covariance that is non-finite, zero or absurdly large (found by the node fuzz
+    test: 9e307 sampled NaN particles) gives one warning and the initial_std_* spread."""
+    loc = Localizer(Parameters(num_particles=100, random_seed=2, ray_caster="distance_transform"))
+    loc.set_map(corridor_map())
+    cov = np.zeros((3, 3))
+    cov[0, 0] = cov[2, 2] = variance
+    with caplog.at_level(logging.WARNING):
+        assert loc.set_initial_pose([5.0, 1.5, 0.0], cov)
+    assert "not a usable spread" in caplog.text
+    assert_sane(loc)
+    assert np.abs(loc.filter.particles[:, 0] - 5.0).max() < 10 * loc.params.initial_std_xy
+
+
 def test_maps_without_free_space_are_rejected_and_old_map_kept(loc):
     old = loc.map
     for value in (-1, 100):

@@ -168,18 +168,24 @@ def test_released_tiles_give_memory_back_and_are_rebuilt_equal():
     assert np.array_equal(tiled.cast(poses, angles), full.cast(poses, angles))  # rebuilt where needed, equal
 
 
-def test_global_seed_on_a_tiled_table_keeps_only_the_tiles_it_had():
-    from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
+def _seed_case(seed: int, lazy: bool, step: float, headings: int, beams: int, candidates: int):
+    """(map, beam model (tiled table when ``lazy``), exact scan ranges and angles from a random free
+    pose, seeding parameters) for the global-seeding tests."""
+    from localization.core.filter.global_init import ScanSeedParams
     m = small_tiled_map()
-    lazy = BeamModel(ray_caster="lookup_table", range_table_lazy_cells=0, table_width=61)
-    lazy.set_map(m)
-    eager = BeamModel(ray_caster="lookup_table", table_width=61)
-    eager.set_map(m)
-    truth = m.sample_free_poses(1, np.random.default_rng(5))
+    model = BeamModel(ray_caster="lookup_table", table_width=61, **({"range_table_lazy_cells": 0} if lazy else {}))
+    model.set_map(m)
+    truth = m.sample_free_poses(1, np.random.default_rng(seed))
     angles = np.linspace(-2.3, 2.3, 60)
     ranges = ExactRayCaster(m, 3.0).cast(truth, angles)[0]
-    p = ScanSeedParams(global_seed_step=0.2, global_seed_headings=36, global_seed_beams=30,
-                       global_seed_candidates=200)
+    return m, model, ranges, angles, ScanSeedParams(global_seed_step=step, global_seed_headings=headings,
+                                                    global_seed_beams=beams, global_seed_candidates=candidates)
+
+
+def test_global_seed_on_a_tiled_table_keeps_only_the_tiles_it_had():
+    from localization.core.filter.global_init import seed_from_scan
+    m, lazy, ranges, angles, p = _seed_case(5, True, 0.2, 36, 30, 200)
+    _, eager, _, _, _ = _seed_case(5, False, 0.2, 36, 30, 200)
     built_before = lazy.ray_caster.built.copy()
     got = seed_from_scan(m, lazy, ranges, angles, 500, np.random.default_rng(6), p, chunk=2000)
     assert np.array_equal(lazy.ray_caster.built, built_before)  # the lattice's tiles were given back
@@ -191,15 +197,8 @@ def test_global_seed_on_a_tiled_table_keeps_only_the_tiles_it_had():
 
 def test_global_seed_running_top_k_equals_one_full_sort():
     """The lattice's best candidates kept chunk by chunk equal those of scoring it in one piece."""
-    from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
-    m = small_tiled_map()
-    model = BeamModel(ray_caster="lookup_table", table_width=61)
-    model.set_map(m)
-    truth = m.sample_free_poses(1, np.random.default_rng(7))
-    angles = np.linspace(-2.3, 2.3, 60)
-    ranges = ExactRayCaster(m, 3.0).cast(truth, angles)[0]
-    p = ScanSeedParams(global_seed_step=0.15, global_seed_headings=24, global_seed_beams=20,
-                       global_seed_candidates=300)
+    from localization.core.filter.global_init import seed_from_scan
+    m, model, ranges, angles, p = _seed_case(7, False, 0.15, 24, 20, 300)
     small = seed_from_scan(m, model, ranges, angles, 200, np.random.default_rng(8), p, chunk=777)
     whole = seed_from_scan(m, model, ranges, angles, 200, np.random.default_rng(8), p, chunk=10**9)
     assert small.lattice_poses == whole.lattice_poses > 777 * 3

@@ -246,9 +246,9 @@ def test_map_to_odom_tf_composes_with_odometry_to_the_estimate(runner, drive):
     assert np.hypot(*(compose(tf_pose(last), list(odom_at.values())[-1])[:2] - truth[:2])) < 0.15
 
 
-def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
-    """With ``sensor_update_thread`` odometry poses keep flowing during a (blocked) sensor update."""
-    r = runner(sensor_update_thread=True)
+def block_sensor_updates(r, drive):
+    """Start localizing, then make every sensor update wait for ``release``; ``entered`` is set when
+    one starts. Returns (entered, release, odometry events, scan events) of the drive's first second."""
     start_localizing(r, drive)
     entered, release = threading.Event(), threading.Event()
     original = r.node.localizer.filter.sensor_update
@@ -259,8 +259,14 @@ def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
         return original(*args, **kwargs)
 
     r.node.localizer.filter.sensor_update = slow_update
-    odoms = [e for e in drive.until(1.0) if e[1] == "odom"]
-    scans = [e for e in drive.until(1.0) if e[1] == "scan"]
+    events = drive.until(1.0)
+    return entered, release, [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
+
+
+def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
+    """With ``sensor_update_thread`` odometry poses keep flowing during a (blocked) sensor update."""
+    r = runner(sensor_update_thread=True)
+    entered, release, odoms, scans = block_sensor_updates(r, drive)
     try:
         r.send_odom(odoms[0][2])
         r.probe.scan_pub.publish(scans[1][2])  # not waited for: its update blocks
@@ -289,18 +295,7 @@ def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
     queue and is handled, in order and completely, right after the update."""
     r = runner()
     assert r.node.scan_worker is None
-    start_localizing(r, drive)
-    entered, release = threading.Event(), threading.Event()
-    original = r.node.localizer.filter.sensor_update
-
-    def slow_update(*args, **kwargs):
-        entered.set()
-        release.wait(10.0)
-        return original(*args, **kwargs)
-
-    r.node.localizer.filter.sensor_update = slow_update
-    odoms = [e for e in drive.until(1.0) if e[1] == "odom"]
-    scans = [e for e in drive.until(1.0) if e[1] == "scan"]
+    entered, release, odoms, scans = block_sensor_updates(r, drive)
     r.send_odom(odoms[0][2])
     r.probe.scan_pub.publish(scans[1][2])
     assert entered.wait(5.0)

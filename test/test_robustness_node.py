@@ -153,18 +153,20 @@ MESSAGES = st.one_of(scans().map(lambda m: ("scan", m)), odoms().map(lambda m: (
 @given(stream=st.lists(MESSAGES, min_size=1, max_size=12))
 def test_node_callbacks_survive_broken_messages_and_never_publish_nan(node, stream):
     n = node
+    # a known-good state first (a good map and pose, as a user would send), so each example stands alone
+    n.on_map(n.good_map)
+    assert h.wait_until(lambda: n.map_worker.idle, 30.0)  # maps are installed on their own thread
+    n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
     _clear(n)
     handlers = {"scan": n.process_scan, "odom": n.on_odometry, "initialpose": n.on_initialpose, "map": n.on_map}
     for kind, msg in stream:
         handlers[kind](msg)  # must not raise
+    assert h.wait_until(lambda: n.map_worker.idle, 30.0)
     bad = [m for m in _outputs(n) if not _finite_msg(m)]
     assert not bad
     assert np.all(np.isfinite(n.localizer.filter.particles))
     if n.localizer.estimate is not None:
         assert np.all(np.isfinite(n.localizer.estimate.pose))
-    # back to a known-good state for the next example (a good map and pose, as a user would send)
-    n.on_map(n.good_map)
-    n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
 
 
 def test_node_keeps_working_after_broken_input_and_publishes_health(node):

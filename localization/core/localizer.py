@@ -56,6 +56,7 @@ from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 
 MAX_SWEEP_S = 0.5  # s: a scan whose beams span longer (time_increment × beams) has no usable sweep timing
+MAX_INITIAL_VARIANCE = 1.0e4  # m², rad²: an initial-pose covariance entry beyond this is not a pose estimate
 STANDING_SPEED, STANDING_YAW_RATE = 0.05, 0.05  # m/s, rad/s: below both the car has stopped (one more update)
 
 
@@ -259,7 +260,9 @@ class Localizer:
         cov = None
         if covariance is not None and self.params.use_initialpose_covariance:
             cov = np.asarray(covariance, dtype=float).reshape(3, 3)
-            if not (np.all(np.isfinite(cov)) and np.trace(cov) > 0):
+            if not (np.all(np.isfinite(cov)) and np.trace(cov) > 0 and np.abs(cov).max() <= MAX_INITIAL_VARIANCE):
+                self.log.warning(f"initial pose covariance {np.diag(cov).tolist()} (diagonal) is not a usable spread "
+                                 "(non-finite, zero, or beyond 1e4): using initial_std_xy / initial_std_theta")
                 cov = None
         std = (self.params.initial_std_xy, self.params.initial_std_xy, self.params.initial_std_theta)
         with self._lock:

@@ -33,6 +33,7 @@ class ScanQueueWorker:
         self._stop = False
         self.dropped = 0
         self.handled = 0
+        self.queued = 0
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -44,12 +45,19 @@ class ScanQueueWorker:
                 self._queue.popleft()
                 self.dropped += 1
             self._queue.append((item, now))
+            self.queued += 1
             self._cond.notify()
 
     @property
     def waiting(self) -> int:
         with self._cond:
             return len(self._queue)
+
+    @property
+    def idle(self) -> bool:
+        """Every item put so far has been handled or dropped."""
+        with self._cond:
+            return self.handled + self.dropped >= self.queued
 
     def _run(self) -> None:
         while True:
@@ -63,7 +71,8 @@ class ScanQueueWorker:
                 self._handle(item, t_put)
             except Exception as exc:  # noqa: BLE001 - a bad scan must never kill the thread
                 self._log_error(f"{self._thread.name} failed: {exc!r}")
-            self.handled += 1
+            with self._cond:
+                self.handled += 1
 
     def stop(self, timeout: float = 5.0) -> None:
         with self._cond:

@@ -63,8 +63,11 @@ class MonteCarloLocalizer:
             cov = np.asarray(covariance, dtype=float).reshape(3, 3)
             cov = 0.5 * (cov + cov.T)
             vals, vecs = np.linalg.eigh(cov)
-            noise = (self.rng.standard_normal((self.num_particles, 3)) * np.sqrt(np.clip(vals, 0, None))) @ vecs.T
-        else:
+            with np.errstate(over="ignore", invalid="ignore"):
+                noise = (self.rng.standard_normal((self.num_particles, 3)) * np.sqrt(np.clip(vals, 0, None))) @ vecs.T
+            if not np.all(np.isfinite(noise)):  # a covariance too large to sample: the plain spread
+                covariance = None
+        if covariance is None:
             noise = self.rng.standard_normal((self.num_particles, 3)) * np.asarray(std, dtype=float)
         self.particles = pose + noise
         self.particles[:, 2] = wrap_angle(self.particles[:, 2])

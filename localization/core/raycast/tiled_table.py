@@ -117,21 +117,12 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         return self.rows_built * self.theta_bins * 2 + self.index.nbytes
 
     def tiles_of(self, sensor_poses) -> np.ndarray:
-        """Ids of the tiles holding world sensor poses (N, 3) (off-map poses: none), unique.
-        Same arithmetic as ``kernels.locate``."""
-        poses = np.asarray(sensor_poses, dtype=float).reshape(-1, 3)
-        ox, oy, c, s, res, _ = self._map_args
-        dx, dy = poses[:, 0] - ox, poses[:, 1] - oy
-        gx = (c * dx + s * dy) / res
-        gy = (-s * dx + c * dy) / res
-        h, w = self.index.shape
-        ok = (gx >= 0.0) & (gx < w) & (gy >= 0.0) & (gy < h)
-        col = np.floor(gx[ok]).astype(np.int64)
-        row = np.floor(gy[ok]).astype(np.int64)
-        return np.unique((row // self.tile) * self.tiles_shape[1] + col // self.tile)
+        """Ids of the tiles holding world sensor poses (N, 3) (off-map poses: none), unique."""
+        ids = self.tile_ids(np.asarray(sensor_poses, dtype=float).reshape(-1, 3)[:, :2])
+        return np.unique(ids[ids >= 0])
 
     def tile_ids(self, xy) -> np.ndarray:
-        """Tile id of each world point (N, 2) (-1 off the map), as ``tiles_of`` without the unique."""
+        """Tile id of each world point (N, 2) (-1 off the map). Same arithmetic as ``kernels.locate``."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
         ox, oy, c, s, res, _ = self._map_args
         dx, dy = xy[:, 0] - ox, xy[:, 1] - oy
