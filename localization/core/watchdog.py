@@ -156,7 +156,7 @@ class Watchdog:
 
     def run_summary(self) -> str:
         """Where the scan -> pose time went over the whole run: median / p95 (ms) of the total and of
-        each part (wait: queued for the sensor-update thread; deserialize: CDR bytes -> LaserScan;
+        each part (wait: queued for the sensor-update thread, 0 without one; deserialize: CDR bytes -> LaserScan;
         convert: message -> ScanData and laser pose; update: the Localizer's sensor update +
         resampling; publish: the outputs)."""
         if not self._run:
