@@ -193,14 +193,20 @@ def test_laser_pose_from_tf_static(runner, drive):
     assert r.node.diagnostic_status().values["laser pose"].startswith("TF")
 
 
-def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
-    r = runner(tf_timeout=0.2, laser_offset_x=0.2)
+def play_past_tf_timeout(r, drive):
+    """Map, initial pose, the first 5 events of the drive, a pause longer than a 0.2 s tf_timeout,
+    then the rest of its first 0.5 s."""
     r.send_map(h.map_msg("stata_basement"))
     r.send_initialpose(h.initialpose_msg(drive.initial_guess))
     events = drive.until(0.5)
     r.play(events[:5])
     time.sleep(0.3)
     r.play(events[5:])
+
+
+def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
+    r = runner(tf_timeout=0.2, laser_offset_x=0.2)
+    play_past_tf_timeout(r, drive)
     assert np.allclose(r.node.localizer.filter.sensor_model.laser_offset, [0.2, 0.0, 0.0])
     assert r.node.diagnostic_status().values["laser pose"] == "laser_offset_* parameters"
 
@@ -214,12 +220,7 @@ def test_broken_tf_tree_is_a_diagnostics_warning(runner, drive):
     t.transform.rotation.w = 1.0
     pub.publish(TFMessage(transforms=[t]))
     assert h.wait_until(lambda: pub.get_subscription_count() > 0, 5.0)
-    r.send_map(h.map_msg("stata_basement"))
-    r.send_initialpose(h.initialpose_msg(drive.initial_guess))
-    events = drive.until(0.5)
-    r.play(events[:5])
-    time.sleep(0.3)
-    r.play(events[5:])
+    play_past_tf_timeout(r, drive)
     time.sleep(0.3)
     st = r.node.diagnostic_status()
     assert any(p.key == "tf" for p in st.problems), st.message

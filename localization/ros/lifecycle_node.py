@@ -16,18 +16,14 @@ import sys
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
-from localization.core.parameters import NODE_NAME, ParameterError
+from localization.core.parameters import NODE_NAME
 from localization.ros.node import LocalizationMixin, spin_node
 
 
 class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        try:
-            self._declare()
-        except ParameterError:
-            self.destroy_node()
-            raise
+        self._declare_or_destroy()
         self._active = False
 
     def on_configure(self, state) -> TransitionCallbackReturn:

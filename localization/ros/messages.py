@@ -57,31 +57,30 @@ def covariance_6x6(covariance) -> list[float]:
     return [float(v) for v in out.ravel()]
 
 
-def odometry_msg(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> Odometry | None:
-    """nav_msgs/Odometry carrying the estimate (twist left zero); None if the pose is not finite."""
+def _stamped(msg, pose, covariance, stamp, frame_id: str):
+    """Fill ``msg`` (Odometry or PoseWithCovarianceStamped: both carry a PoseWithCovariance in
+    ``.pose``) with the estimate; None if the pose is not finite."""
     pose = _finite_pose(pose)
     if pose is None:
         return None
-    msg = Odometry()
     msg.header.stamp = time_msg(stamp)
     msg.header.frame_id = frame_id
-    msg.child_frame_id = child_frame_id
     msg.pose.pose = pose_msg(pose)
     msg.pose.covariance = covariance_6x6(covariance)
+    return msg
+
+
+def odometry_msg(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> Odometry | None:
+    """nav_msgs/Odometry carrying the estimate (twist left zero); None if the pose is not finite."""
+    msg = _stamped(Odometry(), pose, covariance, stamp, frame_id)
+    if msg is not None:
+        msg.child_frame_id = child_frame_id
     return msg
 
 
 def pose_with_covariance_msg(pose, covariance, stamp, frame_id: str) -> PoseWithCovarianceStamped | None:
     """geometry_msgs/PoseWithCovarianceStamped of the estimate (nav2_amcl's /amcl_pose); None if not finite."""
-    pose = _finite_pose(pose)
-    if pose is None:
-        return None
-    msg = PoseWithCovarianceStamped()
-    msg.header.stamp = time_msg(stamp)
-    msg.header.frame_id = frame_id
-    msg.pose.pose = pose_msg(pose)
-    msg.pose.covariance = covariance_6x6(covariance)
-    return msg
+    return _stamped(PoseWithCovarianceStamped(), pose, covariance, stamp, frame_id)
 
 
 def diagnostic_array_msg(status, stamp, name: str, hardware_id: str = "") -> DiagnosticArray:

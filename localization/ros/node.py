@@ -100,6 +100,14 @@ class LocalizationMixin:
     """The node's wiring, for ``rclpy.node.Node`` and ``rclpy.lifecycle.LifecycleNode`` alike."""
 
     # ------------------------------------------------------------------ set-up steps
+    def _declare_or_destroy(self) -> None:
+        """``_declare``; on a bad parameter the half-made node is destroyed and the error re-raised."""
+        try:
+            self._declare()
+        except ParameterError:
+            self.destroy_node()
+            raise
+
     def _declare(self) -> None:
         try:
             self.params = declare_parameters(self)
@@ -541,11 +549,7 @@ class ParticleFilterNode(LocalizationMixin, Node):
 
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        try:
-            self._declare()
-        except ParameterError:
-            self.destroy_node()
-            raise
+        self._declare_or_destroy()
         self._configure()
         self._activate()
 

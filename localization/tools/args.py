@@ -44,24 +44,22 @@ def map_name_or_yaml(text: str) -> str:
     return text
 
 
-def positive_float(text: str) -> float:
+def _float_from(text: str, allow_zero: bool) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number: {text!r}")
+    if not (math.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
+        raise argparse.ArgumentTypeError(f"must be a {'non-negative' if allow_zero else 'positive'} number: {text!r}")
     return value
+
+
+def positive_float(text: str) -> float:
+    return _float_from(text, allow_zero=False)
 
 
 def non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a non-negative number: {text!r}")
-    return value
+    return _float_from(text, allow_zero=True)
 
 
 def param_override(text: str) -> tuple:
