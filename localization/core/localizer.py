@@ -51,11 +51,10 @@ from localization.core.motion import MotionModel, MotionNoiseParams
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import OdometryBuffer, TwistData
 from localization.core.parameters import Parameters
-from localization.core.scan import ScanData, downsample_indices, downsample_scan
+from localization.core.scan import ScanData, downsample_indices, downsample_scan, scan_time, sweep_increment
 from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 
-MAX_SWEEP_S = 0.5  # s: a scan whose beams span longer (time_increment × beams) has no usable sweep timing
 MAX_INITIAL_VARIANCE = 1.0e4  # m², rad²: an initial-pose covariance entry beyond this is not a pose estimate
 STANDING_SPEED, STANDING_YAW_RATE = 0.05, 0.05  # m/s, rad/s: below both the car has stopped (one more update)
 
@@ -386,17 +385,8 @@ class Localizer:
                 self._estimate, self._estimate_t = carried, t
 
     def scan_time(self, scan: ScanData) -> float:
-        """The time a scan describes: its stamp (the first beam), or the middle of its sweep
-        when it carries per-beam timing (stamp + ½ (n − 1) time_increment)."""
-        sweep = self._sweep(scan)
-        return scan.stamp + 0.5 * sweep * (np.size(scan.ranges) - 1)
-
-    @staticmethod
-    def _sweep(scan: ScanData) -> float:
-        """time_increment (s) if usable (finite, > 0, the sweep at most MAX_SWEEP_S), else 0."""
-        ti = scan.time_increment
-        ok = isinstance(ti, (int, float)) and math.isfinite(ti) and ti > 0 and ti * np.size(scan.ranges) <= MAX_SWEEP_S
-        return float(ti) if ok else 0.0
+        """``core.scan.scan_time``: the stamp, or the middle of the sweep when it is timed."""
+        return scan_time(scan)
 
     def _move_to_scan_locked(self, t_s: float | None):
         """Bring the particles to the scan's time t_s (lock held): forward through the odometry
@@ -421,7 +411,7 @@ class Localizer:
         time t_b = stamp + i_b · time_increment (i_b: ``idx``, the downsampled beams' indices):
         δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's constant-twist arc (the odometry twist at t_s) over
         t_b − t_s, L the laser offset. None without sweep timing."""
-        sweep = self._sweep(full_scan)
+        sweep = sweep_increment(full_scan)
         if not (sweep > 0 and self.params.deskew and getattr(self.filter.sensor_model, "supports_deskew", False)):
             return None
         if idx is None:

@@ -8,9 +8,12 @@ sensor_msgs/LaserScan) and the downsampled beams the sensor model uses (``Scan``
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+MAX_SWEEP_S = 0.5  # s: a scan whose beams span longer (time_increment × beams) has no usable sweep timing
 
 
 @dataclass
@@ -77,3 +80,17 @@ def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = No
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max
     return Scan(clean_ranges(ranges[idx], lo, hi), angles, idx)
+
+
+def sweep_increment(scan: ScanData) -> float:
+    """time_increment (s) if usable (finite, > 0, the sweep at most MAX_SWEEP_S), else 0."""
+    ti = scan.time_increment
+    ok = isinstance(ti, (int, float)) and math.isfinite(ti) and ti > 0 and ti * np.size(scan.ranges) <= MAX_SWEEP_S
+    return float(ti) if ok else 0.0
+
+
+def scan_time(scan: ScanData) -> float:
+    """The time a scan describes: its stamp (the first beam), or the middle of its sweep when it
+    carries per-beam timing (stamp + ½ (n − 1) time_increment): also the pose a rigid match of a
+    skewed scan recovers."""
+    return scan.stamp + 0.5 * sweep_increment(scan) * (np.size(scan.ranges) - 1)

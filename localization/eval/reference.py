@@ -4,9 +4,10 @@ estimate against it.
 Reference track: every scan matched to the map by the correlative matcher
 (``localization.core.matching``), seeded by the filter's estimate at the scan's time (or, without
 one, by the previous good match carried forward at its velocity). Each match keeps its score,
-covariance and ``ambiguous`` flag; only *good* matches (not ambiguous, not on the window's edge,
-score ≥ ``min_score``) are trusted. A scan swept over ``time_increment`` > 0 is timed at the middle
-of its sweep (stamp + ½ (n − 1) time_increment): the pose a rigid match of a skewed scan recovers.
+covariance and ``ambiguous`` flag; only *good* matches (not ambiguous, score ≥ ``min_score``, and
+not on the search window's edge when the deskew pass re-matches) are trusted. A scan swept over
+``time_increment`` > 0 is timed at the middle of its sweep (stamp + ½ (n − 1) time_increment): the
+pose a rigid match of a skewed scan recovers.
 
 Errors of an estimate track x̂(t) against a reference x(t) (the estimate interpolated at the
 reference's times), with t̂ the unit direction of travel of the reference (its velocity,
@@ -28,10 +29,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from localization.bags import BagError, open_bag
-from localization.core.geometry import compose, relative, wrap_angle
+from localization.core.geometry import compose, integrate_twists, relative, wrap_angle
 from localization.core.matching import CorrelativeMatcher, MatcherConfig
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.scan import ScanData, beam_angles, clean_ranges
+from localization.core.scan import ScanData, beam_angles, clean_ranges, scan_time
 from localization.eval.metrics import interpolate_poses
 from localization.ros.conversions import scan_from_msg, twist_from_odometry
 
@@ -50,10 +51,8 @@ class ReferenceTrack:
     laser_poses: np.ndarray  # (K, 3)
     score: np.ndarray  # (K,) mean endpoint likelihood
     std_xy: np.ndarray  # (K,) m, std along the worst direction
-    covariance: np.ndarray  # (K, 3, 3)
     ambiguous: np.ndarray  # (K,) bool
     good: np.ndarray  # (K,) bool: trusted matches
-    mount: tuple = (0.0, 0.0, 0.0)
     counts: dict = field(default_factory=dict)
 
     def good_track(self) -> tuple[np.ndarray, np.ndarray]:
@@ -84,27 +83,9 @@ def read_odometry(bag_path, odom_topic: str) -> tuple[np.ndarray, np.ndarray]:
     return t[order], v[order]
 
 
-def scan_time(scan: ScanData) -> float:
-    """The time a rigid match of the scan describes: the middle of its sweep."""
-    n = np.asarray(scan.ranges).size
-    ti = scan.time_increment if math.isfinite(scan.time_increment) and scan.time_increment > 0 else 0.0
-    return float(scan.stamp + 0.5 * max(n - 1, 0) * ti)
-
-
 # --------------------------------------------------------------------------------------------
 # Dead reckoning
 # --------------------------------------------------------------------------------------------
-
-
-def _arc(vx, vy, wz, dt):
-    """Vectorised ``geometry.integrate_twist``: displacement (N, 3) of constant twists over dt."""
-    vx, vy, wz, dt = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (vx, vy, wz, dt)))
-    dth = wz * dt
-    small = np.abs(dth) < 1e-6
-    safe = np.where(small, 1.0, wz)
-    a = np.where(small, dt * (1.0 - dth * dth / 6.0), np.sin(dth) / safe)
-    b = np.where(small, dt * 0.5 * dth, (1.0 - np.cos(dth)) / safe)
-    return np.stack([vx * a - vy * b, vx * b + vy * a, dth], axis=-1)
 
 
 def dead_reckon(odom_t, twist, query_t, a=1.0, b=1.0, c=0.0) -> np.ndarray:
@@ -117,7 +98,7 @@ def dead_reckon(odom_t, twist, query_t, a=1.0, b=1.0, c=0.0) -> np.ndarray:
     M = len(t)
     poses = np.zeros((M, 3))
     if M > 1:
-        steps = _arc(vx[1:], vy[1:], wz[1:], np.diff(t))
+        steps = integrate_twists(vx[1:], vy[1:], wz[1:], np.diff(t))
         for k in range(1, M):  # M ~ 50 per second of bag: cheap
             poses[k] = compose(poses[k - 1], steps[k - 1])
     q = np.asarray(query_t, dtype=float)
@@ -125,7 +106,7 @@ def dead_reckon(odom_t, twist, query_t, a=1.0, b=1.0, c=0.0) -> np.ndarray:
     if M < 2:
         return np.zeros((q.size, 3))
     dt = np.clip(q - t[k - 1], 0.0, None)
-    return compose(poses[k - 1], _arc(vx[k], vy[k], wz[k], dt))
+    return compose(poses[k - 1], integrate_twists(vx[k], vy[k], wz[k], dt))
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,10 +139,8 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, est_t=None, est_p
     lasers = np.full((K, 3), np.nan)
     score = np.full(K, np.nan)
     std = np.full(K, np.nan)
-    cov = np.full((K, 3, 3), np.nan)
     amb = np.zeros(K, dtype=bool)
     good = np.zeros(K, dtype=bool)
-    edge = np.zeros(K, dtype=bool)
     chain = np.full((K, 3), np.nan)  # the track the seeds follow
     has_est = est_t is not None and len(est_t) > 0
     est_at = interpolate_poses(t, est_t, est_poses) if has_est else np.full((K, 3), np.nan)
@@ -208,8 +187,8 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, est_t=None, est_p
             no_match += 1
             continue
         r, ok = best
-        poses[k], lasers[k], score[k], std[k], cov[k] = r.pose, r.laser_pose, r.score, r.std_xy_max, r.covariance
-        amb[k], good[k], edge[k] = r.ambiguous, ok, r.at_window_edge
+        poses[k], lasers[k], score[k], std[k] = r.pose, r.laser_pose, r.score, r.std_xy_max
+        amb[k], good[k] = r.ambiguous, ok
         if ok:
             chain[k] = r.pose
         elif r.ambiguous and r.score >= min_score and prediction is not None:
@@ -233,8 +212,8 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, est_t=None, est_p
 
     counts = {"scans": int(K), "good": int(good.sum()), "ambiguous": int(amb.sum()),
               "low_score": int(np.sum(~good & ~amb & np.isfinite(score))), "unmatched": int(no_match)}
-    return ReferenceTrack(t=t, poses=poses, laser_poses=lasers, score=score, std_xy=std, covariance=cov,
-                          ambiguous=amb, good=good, mount=mount, counts=counts)
+    return ReferenceTrack(t=t, poses=poses, laser_poses=lasers, score=score, std_xy=std, ambiguous=amb, good=good,
+                          counts=counts)
 
 
 DESKEW_WINDOW = (0.15, 0.05)  # m, rad: the second (deskewed) pass searches this close to the first
@@ -415,7 +394,6 @@ def reference_metrics(ref: ReferenceTrack, est_t, est_poses, truth_t=None, truth
         vs = track_errors(rt, rp, rt, interpolate_poses(rt, tt, tp))
         out["reference_vs_truth_m"] = {"median": float(np.median(vs.position)) if vs.position.size else None,
                                        "p95": float(np.percentile(vs.position, 95)) if vs.position.size else None}
-        out.update(truth_decomposition(est_t, est_poses, tt, tp))
     return out
 
 

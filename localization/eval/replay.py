@@ -119,7 +119,6 @@ class ReplayResult:
     scan_topic: str
     odom_topic: str
     truth_source: str | None
-    health_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
     health: np.ndarray = field(default_factory=lambda: np.zeros(0))  # Localizer.health (scan-map agreement)
     particles_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
     particles: np.ndarray = field(default_factory=lambda: np.zeros(0))  # particle count (adaptive_particles)
@@ -320,7 +319,7 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         odom_topic=odom_topic,
         truth_source=(f"{truth_topic} ({parent} -> {child})" if truth_topic == "/tf" else truth_topic)
         if len(truth_t) else None,
-        health_t=np.asarray(log.health_t, dtype=float), health=np.asarray(log.health, dtype=float),
+        health=np.asarray(log.health, dtype=float),
         particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float))
     if opts.reference or (opts.reference is None and not res.has_truth):
         from localization.eval.reference import reference_for_bag
