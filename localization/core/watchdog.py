@@ -123,6 +123,7 @@ class Watchdog:
         self.map_detail = detail
 
     def map_ready(self, now: float) -> None:
+        self.last_map = now
         self.map_state, self.map_detail = "ready", ""
 
     def map_failed(self, now: float, detail: str) -> None:

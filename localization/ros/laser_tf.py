@@ -38,17 +38,14 @@ class LaserPoseLookup:
         self._edges: dict[str, tuple[str, np.ndarray]] = {}  # child -> (parent, planar transform)
         self._subs = []
         self.buffer = self.listener = None
-        self.received = 0  # TF transforms seen (fallback)
         if tf2_ros is not None:
             self.buffer = tf2_ros.Buffer()
             self.listener = tf2_ros.TransformListener(self.buffer, node)
-            self.backend = "tf2_ros"
         else:
             from localization.ros.tf_broadcaster import _tf_message_type
             msg_type = _tf_message_type()
             self._subs = [node.create_subscription(msg_type, TF_STATIC_TOPIC, self._on_tf, TF_STATIC_QOS),
                           node.create_subscription(msg_type, TF_TOPIC, self._on_tf, TF_QOS)]
-            self.backend = "tf2_msgs"
 
     def _on_tf(self, msg) -> None:
         with self._lock:
@@ -57,7 +54,6 @@ class LaserPoseLookup:
                     continue
                 self._edges[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"),
                                                              planar_transform(t.transform))
-                self.received += 1
 
     @property
     def has_data(self) -> bool:
@@ -68,7 +64,8 @@ class LaserPoseLookup:
             except Exception:  # noqa: BLE001
                 return False
             return any(child not in self.ignore_children for child, _ in frames)
-        return self.received > 0
+        with self._lock:
+            return bool(self._edges)
 
     def lookup(self, parent: str, child: str):
         parent, child = parent.lstrip("/"), child.lstrip("/")

@@ -24,7 +24,6 @@ class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
         self._declare_or_destroy()
-        self._active = False
 
     def on_configure(self, state) -> TransitionCallbackReturn:
         try:
@@ -37,12 +36,10 @@ class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
 
     def on_activate(self, state) -> TransitionCallbackReturn:
         self._activate()
-        self._active = True
         return super().on_activate(state)
 
     def on_deactivate(self, state) -> TransitionCallbackReturn:
         self._deactivate()
-        self._active = False
         self.get_logger().info("deactivated: inputs unsubscribed")
         return super().on_deactivate(state)
 
@@ -54,13 +51,6 @@ class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
     def on_shutdown(self, state) -> TransitionCallbackReturn:
         self._shutdown_wiring()
         return TransitionCallbackReturn.SUCCESS
-
-    def _shutdown_wiring(self) -> None:
-        if getattr(self, "_active", False):
-            self._deactivate()
-            self._active = False
-        if getattr(self, "_configured", False):
-            self._cleanup()
 
     def destroy_node(self):
         self._shutdown_wiring()

@@ -65,7 +65,6 @@ from localization.ros.stamps import StampBook
 from localization.ros.tf_broadcaster import TransformBroadcaster
 
 ODOM_POSE_TOPIC = "/pf/pose/odom"  # nav_msgs/Odometry (the course's output)
-POSE_TOPIC = ODOM_POSE_TOPIC  # backwards-compatible name
 PARTICLES_TOPIC = "/pf/particles"
 HEALTH_TOPIC = "/pf/health"  # std_msgs/Float32: scan-map agreement of the estimate (localization.health)
 DIAGNOSTICS_TOPIC = "/diagnostics"
@@ -100,6 +99,13 @@ class LocalizationMixin:
     """The node's wiring, for ``rclpy.node.Node`` and ``rclpy.lifecycle.LifecycleNode`` alike."""
 
     # ------------------------------------------------------------------ set-up steps
+    def _shutdown_wiring(self) -> None:
+        """Deactivate (if active: subscriptions exist) and clean up (if configured); safe to repeat."""
+        if getattr(self, "_pf_subs", None):
+            self._deactivate()
+        if getattr(self, "_configured", False):
+            self._cleanup()
+
     def _declare_or_destroy(self) -> None:
         """``_declare``; on a bad parameter the half-made node is destroyed and the error re-raised."""
         try:
@@ -144,6 +150,7 @@ class LocalizationMixin:
         self.health_pub = self.create_publisher(Float32, HEALTH_TOPIC, 10)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
         self.tf = None if p.publish_tf == "none" else TransformBroadcaster(self)
+        self._map_to_odom = p.publish_tf == "map_to_odom"  # only then is the odometry pose needed
         if p.sensor_update_thread:
             self.scan_worker = ScanQueueWorker(self.process_scan, self.get_logger().error)
         self.map_worker = ScanQueueWorker(self._install_map, self.get_logger().error, name="map_preparation",
@@ -200,7 +207,7 @@ class LocalizationMixin:
         if self._configured:
             dropped = "" if self.scan_worker is None else f", {self.scan_worker.dropped} dropped (queue full)"
             self.get_logger().info(
-                f"scans: {self.counts['scan_received']} received, {self.counts['scan']} processed "
+                f"scans: {self.watchdog.scans_received} received, {self.counts['scan']} processed "
                 f"({self.watchdog.sensor_updates} sensor updates, {self.watchdog.scans_waiting_for_table} while "
                 f"the range table was prepared){dropped}; scan -> pose: {self.watchdog.run_summary()}")
         if self.localizer is not None and self.params.persist_pose:
@@ -309,7 +316,6 @@ class LocalizationMixin:
             self.counts["map"] += 1
             return
         self.watchdog.map_ready(time.monotonic())
-        self.watchdog.last_map = time.monotonic()
         source = getattr(caster, "table_source", None)
         how = {"built": "built", "disk": "loaded from the cache", "memory": "shared with a map in memory"}.get(
             source, "")
@@ -374,10 +380,13 @@ class LocalizationMixin:
             self.watchdog.odom_waiting_for_table += 1
         twist = twist_from_odometry(msg)
         stamp = self.stamps.remember(msg.header.stamp)
-        odom_pose = pose_from_msg(msg.pose.pose)
-        with self._odom_lock:
-            est = self.localizer.on_odometry(twist)
-            self._odom_pose = odom_pose
+        if self._map_to_odom:  # map -> odom pairs the estimate with this message's odometry pose
+            odom_pose = pose_from_msg(msg.pose.pose)
+            with self._odom_lock:
+                est = self.localizer.on_odometry(twist)
+                self._odom_pose = odom_pose
+        else:
+            est, odom_pose = self.localizer.on_odometry(twist), None
         self._last_data_stamp = stamp
         if est is not None:  # None before a map and an initial pose (the Localizer logs that, throttled)
             self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
@@ -385,7 +394,6 @@ class LocalizationMixin:
     def on_scan(self, msg) -> None:
         """Subscription callback: the scan (serialized bytes, or a message) through the sensor update
         here, or handed over to the sensor-update thread (``sensor_update_thread``)."""
-        self.counts["scan_received"] += 1
         now = time.monotonic()
         self.watchdog.scan_received(now)
         if self.scan_worker is None:
@@ -413,9 +421,11 @@ class LocalizationMixin:
         t_update = time.monotonic()
         self._last_data_stamp = stamp
         if est is not None:  # None when not ready, or no update was due
-            with self._odom_lock:  # an estimate and odometry pose that belong together
-                now, odom_pose = self.localizer.estimate, self._odom_pose
-            # re-stamped: odometry arriving meanwhile may re-stamp the Localizer's estimate object
+            now = odom_pose = None
+            if self._map_to_odom:
+                with self._odom_lock:  # an estimate and odometry pose that belong together
+                    now, odom_pose = self.localizer.estimate, self._odom_pose
+            # stamped with the scan's header stamp (est.stamp is its mid-sweep time with align_odometry)
             self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose, now)
             self._publish_particles(stamp)
             health = messages.health_msg(self.localizer.health)
@@ -518,10 +528,8 @@ class LocalizationMixin:
             self.get_logger().warning("non-finite estimate not published", throttle_duration_sec=5.0)
             return
         self.pose_pub.publish(msg)
-        if _subscribed(self.pose_cov_pub):  # building a message nobody reads costs the GIL
-            cov_msg = messages.pose_with_covariance_msg(est.pose, est.covariance, stamp, p.map_frame)
-            if cov_msg is not None:
-                self.pose_cov_pub.publish(cov_msg)
+        if _subscribed(self.pose_cov_pub):  # the same header and PoseWithCovariance, nothing converted again
+            self.pose_cov_pub.publish(PoseWithCovarianceStamped(header=msg.header, pose=msg.pose))
         if self.tf is None:
             return
         if p.publish_tf == "map_to_odom":
@@ -554,9 +562,7 @@ class ParticleFilterNode(LocalizationMixin, Node):
         self._activate()
 
     def destroy_node(self):
-        if getattr(self, "_configured", False):
-            self._deactivate()
-            self._cleanup()
+        self._shutdown_wiring()
         return super().destroy_node()
 
 

@@ -49,11 +49,6 @@ class ScanQueueWorker:
             self._cond.notify()
 
     @property
-    def waiting(self) -> int:
-        with self._cond:
-            return len(self._queue)
-
-    @property
     def idle(self) -> bool:
         """Every item put so far has been handled or dropped."""
         with self._cond:
