@@ -48,10 +48,11 @@ import time
 from collections.abc import Sequence
 
 from localization.bags import BagError, open_bag
+from localization.bags.writer import LATCHED_TOPICS
 from localization.tools.args import map_name_or_yaml, non_negative_float, pose, positive_float, split_ros_args
 
 PROG = "localization-play"
-LATCHED_TOPICS = ("/tf_static",)
+INITIAL_POSE_COVARIANCE = ((0.3 ** 2, 0.0, 0.0), (0.0, 0.3 ** 2, 0.0), (0.0, 0.0, 0.1 ** 2))  # m², m², rad²
 DEFAULT_DEPTH = 100
 
 
@@ -258,35 +259,23 @@ def _play(bag, infos, classes, args, ros_args) -> int:
 def _publish_map_and_pose(node, args, stop) -> None:
     """``--map`` (latched, kept by the publisher while the node lives) and ``--initial-pose`` (once a
     subscriber is matched, at most ``max(start_delay, 5 s)`` waiting)."""
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
     if getattr(args, "map_msg", None) is not None:
         from nav_msgs.msg import OccupancyGrid
 
         from localization.ros.messages import occupancy_grid_msg
-        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        args.map_pub = node.create_publisher(OccupancyGrid, "/map", qos)
+        from localization.ros.parameters import MAP_QOS
+        args.map_pub = node.create_publisher(OccupancyGrid, "/map", MAP_QOS)
         args.map_pub.publish(occupancy_grid_msg(args.map_msg, time.time(), "map"))
     if args.initial_pose is not None:
         from geometry_msgs.msg import PoseWithCovarianceStamped
 
-        from localization.core.geometry import yaw_to_quaternion
+        from localization.ros.messages import pose_with_covariance_msg
         pub = node.create_publisher(PoseWithCovarianceStamped, "/initialpose", 10)
         deadline = time.monotonic() + max(args.start_delay, 5.0)
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline and not stop.is_set():
             stop.wait(0.05)
-        msg = PoseWithCovarianceStamped()
-        msg.header.frame_id = "map"
-        now = time.time_ns()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
         x, y, yaw = args.initial_pose
-        q = yaw_to_quaternion(yaw)
-        msg.pose.pose.position.x, msg.pose.pose.position.y = float(x), float(y)
-        msg.pose.pose.orientation.z, msg.pose.pose.orientation.w = float(q[2]), float(q[3])
-        cov = [0.0] * 36
-        cov[0], cov[7], cov[35] = 0.3 ** 2, 0.3 ** 2, 0.1 ** 2
-        msg.pose.covariance = cov
-        pub.publish(msg)
+        pub.publish(pose_with_covariance_msg((x, y, yaw), INITIAL_POSE_COVARIANCE, time.time(), "map"))
         matched = pub.get_subscription_count()
         print(f"{PROG}: initial pose ({x:.2f}, {y:.2f}, {yaw:.2f}) published on /initialpose "
               f"({matched} subscriber{'s' if matched != 1 else ''})", flush=True)
