@@ -25,6 +25,7 @@ import logging
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,10 @@ def ensure_compiled(params, logger=None) -> str:
                 "update; a separate process, so this one keeps only the compiled code) ...")
     cmd = [sys.executable, "-m", "localization.core.compile_kernels", json.dumps(dict(params))]
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+        with tempfile.TemporaryDirectory(prefix="localization-kernels-") as scratch:
+            # the tiny map's range table goes to a scratch cache; the child compiles in-process itself
+            env = dict(os.environ, LOCALIZATION_CACHE_DIR=scratch, LOCALIZATION_KERNELS_IN_PROCESS="1")
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False, env=env)
         failed = out.returncode != 0
         detail = (out.stderr or "").strip().splitlines()[-1:] if failed else []
     except (OSError, subprocess.SubprocessError) as exc:

@@ -22,31 +22,19 @@ def tiny_map():
 
 
 def compile_kernels(params) -> None:
-    """Run a localizer with ``params`` on ``tiny_map`` through one odometry and one scan (the table is
-    built, never read from or written to the table cache)."""
+    """Run a localizer with ``params`` on ``tiny_map`` through one odometry and one scan."""
     from localization.core.localizer import Localizer
     from localization.core.odometry import TwistData
-    from localization.core.raycast import make_ray_caster
-    from localization.core.raycast.lookup_table import LookupTableRayCaster
+    from localization.core.parameters import Parameters
     from localization.core.scan import ScanData
-    from localization.core.sensors.likelihood_field import LikelihoodFieldModel
 
     params = dict(params, num_particles=50, global_localization=False, adaptive_particles=False,
                   update_min_distance=0.0, update_min_angle=0.0)
-    from localization.core.parameters import Parameters
     loc = Localizer(Parameters(params))
     occupancy_map = tiny_map()
-    sensor = loc.filter.sensor_model
-    if isinstance(sensor, LikelihoodFieldModel):
-        caster = sensor.prepare(occupancy_map)
-    elif sensor.ray_caster_kind in ("lookup_table", "lookup_table_exact"):
-        caster = LookupTableRayCaster(occupancy_map, sensor.z_max * occupancy_map.resolution,
-                                      sensor.scan_theta_discretization,
-                                      refine=1.0 if sensor.ray_caster_kind == "lookup_table_exact" else 0.0)
-        caster.warm_up()
-    else:
-        caster = make_ray_caster(sensor.ray_caster_kind, occupancy_map, sensor.z_max * occupancy_map.resolution)
-    loc.set_map(occupancy_map, caster)
+    # prepared here, so set_map does not ask ensure_compiled again; ensure_compiled points the table
+    # cache of this process at a scratch folder
+    loc.set_map(occupancy_map, loc.filter.sensor_model.prepare(occupancy_map))
     loc.set_initial_pose(np.array([1.0, 1.0, 0.0]), stamp=0.0)
     loc.on_odometry(TwistData(0.0, 0.5, 0.0, 0.1))
     loc.on_odometry(TwistData(0.02, 0.5, 0.0, 0.1))

@@ -213,19 +213,13 @@ class Localizer:
 
     # ------------------------------------------------------------------ node services (issue 11)
     def prepare_ray_caster(self, occupancy_map: OccupancyMap):
-        """The sensor model's ray caster for ``occupancy_map`` (the slow part of ``set_map``: a
-        range table built or loaded), made without touching the filter, so a caller can run it on
-        another thread and then call ``set_map(occupancy_map, caster)``; ``map_pending`` is True
-        meanwhile (inputs are reported as waiting for the table)."""
-        from localization.core.raycast import make_ray_caster
+        """The sensor model's ``prepare``d map (a ray caster with its range table built or loaded, or
+        the likelihood field's distance field): the slow part of ``set_map``, made without touching
+        the filter, so a caller can run it on another thread and then call ``set_map(occupancy_map,
+        prepared)``; ``map_pending`` is True meanwhile (inputs are reported as waiting for the table)."""
         self.map_pending = True
         ensure_compiled(self.params, self.log)
-        sensor = self.filter.sensor_model
-        if isinstance(sensor, LikelihoodFieldModel):  # no ray caster: its distance field
-            return sensor.prepare(occupancy_map)
-        max_range = sensor.z_max * occupancy_map.resolution
-        return make_ray_caster(sensor.ray_caster_kind, occupancy_map, max_range, sensor.scan_theta_discretization,
-                               sensor.range_table_lazy_cells)
+        return self.filter.sensor_model.prepare(occupancy_map)
 
     def set_laser_offset(self, offset) -> None:
         """The laser pose (x, y, yaw) in the robot frame, e.g. read from TF."""

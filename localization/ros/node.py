@@ -279,7 +279,7 @@ class LocalizationMixin:
         from localization.core.raycast.table_cache import cache_file_name
         sensor = self.localizer.filter.sensor_model
         bins = sensor.scan_theta_discretization
-        max_range = sensor.z_max * occupancy_map.resolution * sensor.lidar_scale_to_map_scale
+        max_range = sensor.max_range_in(occupancy_map)
         cached = (cache_dir() / cache_file_name(occupancy_map, max_range, bins)).is_file()
         free = int(np.count_nonzero(occupancy_map.free))
         size = f"map {occupancy_map.width}x{occupancy_map.height} cells ({free} free) x {bins} headings"

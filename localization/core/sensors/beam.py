@@ -143,21 +143,31 @@ class BeamModel:
     @property
     def max_range(self) -> float:
         """The range (map metres) of z_max: rays are cast no further."""
-        return self.z_max * self.map.resolution
+        return self.max_range_in(self.map)
+
+    def max_range_in(self, occupancy_map: OccupancyMap) -> float:
+        """``max_range`` on ``occupancy_map`` (z_max cells of it)."""
+        return self.z_max * occupancy_map.resolution
 
     def measured_to_cells(self, ranges) -> np.ndarray:
         """Measured ranges (lidar metres) -> table rows: lidar_scale_to_map_scale turns lidar metres
         into map metres (the correction ``localization-calibrate`` estimates)."""
         return self.to_cells(np.asarray(ranges, dtype=float) * self.lidar_scale_to_map_scale)
 
+    def prepare(self, occupancy_map: OccupancyMap, kind: str | None = None) -> RayCaster:
+        """The ray caster (``kind``, default ``ray_caster``) of a map: the slow part of ``set_map`` (a
+        range table built or loaded), without touching the model, so a caller may make it on another
+        thread and then call ``set_map(occupancy_map, caster)``."""
+        return make_ray_caster(kind or self.ray_caster_kind, occupancy_map, self.max_range_in(occupancy_map),
+                               self.scan_theta_discretization, self.range_table_lazy_cells)
+
     def set_map(self, occupancy_map: OccupancyMap, ray_caster=None) -> None:
-        """Use a (new) map: builds its ray caster (``ray_caster``: a ready caster, or a name)."""
+        """Use a (new) map: builds its ray caster (``ray_caster``: a ready caster from ``prepare``, or
+        a caster name)."""
         self.map = occupancy_map
-        if ray_caster is not None and not isinstance(ray_caster, str):
-            self.ray_caster = ray_caster
-        else:
-            self.ray_caster = make_ray_caster(ray_caster or self.ray_caster_kind, occupancy_map, self.max_range,
-                                              self.scan_theta_discretization, self.range_table_lazy_cells)
+        if ray_caster is None or isinstance(ray_caster, str):
+            ray_caster = self.prepare(occupancy_map, ray_caster)
+        self.ray_caster = ray_caster
         if self._fused:  # compile (or load from numba's cache) now, not on the first scan
             self.log_likelihood(np.zeros((1, 3)), np.zeros(1), np.zeros(1))
 

@@ -170,9 +170,8 @@ class LikelihoodFieldModel:
 
     def set_map(self, occupancy_map: OccupancyMap, prepared=None) -> None:
         """Use a (new) map: precompute the quantised distance field (or take ``prepared``, from
-        ``prepare``; anything else, e.g. a ray caster meant for the beam model, is ignored); compile."""
-        if not (isinstance(prepared, np.ndarray) and prepared.shape == occupancy_map.data.shape
-                and prepared.dtype == np.uint8):
+        ``prepare``); compile."""
+        if prepared is None:
             prepared = self.prepare(occupancy_map)
         self.field = prepared
         self.map = occupancy_map
