@@ -46,8 +46,6 @@ class AgreementScorer:
         self.tolerance = float(tolerance)
         # cell-centre distances, so "within tolerance" of a wall means within tolerance + half a cell
         self.near = occupancy_map.near_obstacle(self.tolerance + 0.5 * occupancy_map.resolution)
-        self._angles_key = None
-        self._angles = None
 
     def endpoints(self, base_pose, ranges, angles, range_min: float, range_max: float) -> np.ndarray:
         """World xy (K, 2) of the valid beams' endpoints seen from ``base_pose``."""
@@ -65,9 +63,7 @@ class AgreementScorer:
         pts = self.endpoints(base_pose, ranges, angles, range_min, range_max)
         if len(pts) == 0:
             return math.nan
-        cr = self.map.world_to_grid(pts)
-        inside = self.map.in_bounds(cr)
-        return float(np.count_nonzero(self.near[cr[inside, 1], cr[inside, 0]]) / len(pts))
+        return float(np.count_nonzero(self.map.lookup(pts, self.near)) / len(pts))
 
 
 @dataclass

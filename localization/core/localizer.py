@@ -123,7 +123,6 @@ class Localizer:
         self._impossible_scans = 0
         self.health_monitor = HealthMonitor.from_params(self.params)
         self._scorer: AgreementScorer | None = None
-        self.global_mode = False  # particles spread globally (start, service or recovery), not yet converged
         self._seed_pending = False  # global_init scan: the next scan seeds the global spread
         self.recoveries = 0  # re-spreads after the filter was judged lost (or every particle impossible)
         self.map_pending = False  # a map arrived and its ray caster is being prepared (prepare_ray_caster)
@@ -260,7 +259,7 @@ class Localizer:
         std = (self.params.initial_std_xy, self.params.initial_std_xy, self.params.initial_std_theta)
         with self._lock:
             self.filter.resize(self.params.num_particles)
-            self.global_mode = self.filter.kld_hold = False
+            self.global_mode = False
             self.filter.initialize_gaussian(pose, cov, std)
             self._after_init(stamp)
         return True
@@ -283,7 +282,6 @@ class Localizer:
         self.filter.resize(self.global_particle_count)
         self.filter.initialize_uniform(self.map)
         self.global_mode = True
-        self.filter.kld_hold = True  # adaptive_particles: a global spread keeps max_particles until it converges
         self._after_init(stamp)
         self._seed_pending = self.params.global_init == "scan"  # the next scan proposes the poses
         return True
@@ -416,13 +414,24 @@ class Localizer:
         laser = np.asarray(self.filter.sensor_model.laser_offset, dtype=float)
         return compose(inverse(laser), compose(robot, laser))
 
+    @property
+    def global_mode(self) -> bool:
+        """Particles spread globally (start, service or recovery), not yet converged. The filter's
+        ``kld_hold`` is the same flag: with adaptive_particles a global spread keeps max_particles
+        until it converges."""
+        return self.filter.kld_hold
+
+    @global_mode.setter
+    def global_mode(self, value: bool) -> None:
+        self.filter.kld_hold = bool(value)
+
     def _check_health(self, est, scan, range_min: float, range_max: float, stamp: float):
         """After a sensor update (lock held): shrink a converged global cloud back to num_particles;
         score a converged estimate against the scan and re-spread globally when the filter is lost."""
         if self.global_mode:
             if cloud_spread(est.covariance) >= self.params.global_converged_std:
                 return est  # still spread: the mean pose of many hypotheses says nothing yet
-            self.global_mode = self.filter.kld_hold = False
+            self.global_mode = False
             if self.filter.kld is None:  # adaptive_particles: the KLD sampler shrinks the cloud itself
                 self.filter.resize(self.params.num_particles)
             self.health_monitor.reset(keep_slow=True)

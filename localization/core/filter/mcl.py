@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
-from localization.core.geometry import wrap_angle
+from localization.core.geometry import circular_mean, wrap_angle
 from localization.core.motion import MotionModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.sensors import SensorModel
@@ -34,7 +34,7 @@ class SensorUpdateResult:
     ok: bool  # False when every particle had likelihood 0 (weights left unchanged)
     resampled: bool
     ess: float  # effective sample size after the update, before resampling
-    mean_log_likelihood: float  # log of the weighted-mean likelihood (a health signal)
+    mean_log_likelihood: float  # log of the weighted-mean likelihood
 
 
 class MonteCarloLocalizer:
@@ -53,7 +53,6 @@ class MonteCarloLocalizer:
         self.initialized = False
         self.kld = kld  # a filter.kld.KLDSampler: each resampling picks the particle count (None: fixed)
         self.kld_hold = False  # True: keep the current count even with a KLD sampler (a global spread)
-        self.last_bins = 0  # KLD: occupied bins at the last resampling
 
     # ------------------------------------------------------------------ initialisation
     def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
@@ -126,7 +125,7 @@ class MonteCarloLocalizer:
             weights = self.weights
         if self.kld is not None and not self.kld_hold:  # adaptive count: KLD draws the indices and their number
             draw = self.kld.resample(self.particles, weights, self.rng)
-            self.last_bins, n = draw.bins, draw.indices.size
+            n = draw.indices.size
             self.particles = self.particles[draw.indices]
             self.num_particles = n
             if self.roughening.any():
@@ -163,7 +162,7 @@ class MonteCarloLocalizer:
         w = self.weights
         x = float(np.dot(w, self.particles[:, 0]))
         y = float(np.dot(w, self.particles[:, 1]))
-        th = float(np.arctan2(np.dot(w, np.sin(self.particles[:, 2])), np.dot(w, np.cos(self.particles[:, 2]))))
+        th = circular_mean(self.particles[:, 2], w)
         diff = self.particles - np.array([x, y, th])
         diff[:, 2] = wrap_angle(diff[:, 2])
         cov = (diff * w[:, None]).T @ diff

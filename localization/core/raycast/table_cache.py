@@ -17,9 +17,9 @@ import numpy as np
 
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.paths import atomic_write
+from localization.core.raycast.kernels import TABLE_MAX_UNITS
 
 FORMAT_VERSION = 2  # 2: tables of the sphere-tracing build before the diagonal fix are not reused
-TABLE_MAX_UNITS = 65535  # uint16
 
 log = logging.getLogger(__name__)
 
