@@ -37,13 +37,13 @@ import time
 
 import numpy as np
 
+from localization.benchmarks.robustness import ct_errors, run_recording
 from localization.core.localizer import Localizer
 from localization.core.occupancy_map import OccupancyMap, load_map
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.eval import metrics as M
 from localization.eval.datasets import REAL_BAGS, real_bag_path, trial_config
-from localization.eval.feed import Feeder, recording_events
 from localization.sim import simulate
 
 CONFIGS = {
@@ -99,12 +99,9 @@ def _run_sim(rec, params: Parameters, occupancy_map: OccupancyMap) -> dict:
     loc = Localizer(params)
     loc.set_map(occupancy_map)
     t0 = float(rec.odometry.t[0])
-    loc.set_initial_pose(rec.initial_pose, None, t0)
-    feeder = Feeder(loc)
-    feeder.feed(recording_events(rec))
-    log = feeder.log
-    est_t, est_p = log.estimates()
-    cmp = M.compare_to_truth(est_t, est_p, rec.truth_t, rec.truth_poses)
+    run = run_recording(rec, loc, init="pose")
+    log = run.log
+    cmp = ct_errors(rec, run)
     conv = M.time_to_converge(cmp.t, cmp.ct_error, M.CONVERGENCE_THRESHOLD_M, t0)
     err = cmp.ct_error  # the whole run, from the (0.5 m off) initial pose
     particles = np.asarray(log.particles, dtype=float)

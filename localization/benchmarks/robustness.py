@@ -48,7 +48,7 @@ from localization.core.paths import config_dir
 from localization.eval import metrics as M
 from localization.eval.corrupt import corrupt_bag
 from localization.eval.datasets import _LOOP, REPORT_TRIALS, trial_config
-from localization.eval.feed import Feeder, recording_events
+from localization.eval.feed import Feeder, FeedLog, recording_events
 from localization.sim import Recording, SimConfig, clearance_grid, densify, simulate
 
 TARGET_M = 0.3
@@ -77,6 +77,7 @@ class RunResult:
     filter_time: float  # wall seconds inside the Localizer
     messages: int
     cpu_time: float = 0.0  # process CPU seconds of the run (robust to other processes on the machine)
+    log: FeedLog | None = None  # everything the Feeder recorded (particle counts, sensor-update times, ...)
 
 
 def run_recording(rec: Recording, localizer: Localizer, init: str = "pose", t_offset: float = 0.0) -> RunResult:
@@ -92,7 +93,7 @@ def run_recording(rec: Recording, localizer: Localizer, init: str = "pose", t_of
     log = Feeder(localizer).feed(recording_events(rec, t_offset))
     est_t, est_p = log.estimates()
     return RunResult(est_t, est_p, np.asarray(log.health_t), np.asarray(log.health), localizer.recoveries - rec0,
-                     log.filter_time, log.counts["odometry"] + log.counts["scans"], time.process_time() - cpu0)
+                     log.filter_time, log.counts["odometry"] + log.counts["scans"], time.process_time() - cpu0, log)
 
 
 def ct_errors(rec: Recording, run: RunResult, t_offset: float = 0.0) -> M.TruthComparison:
