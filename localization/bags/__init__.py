@@ -23,6 +23,7 @@ from localization.bags.writer import (
                                       make_header,
                                       make_laser_scan,
                                       make_odometry,
+                                      make_pose,
                                       make_tf_message,
                                       make_time,
                                       make_transform_stamped,
@@ -31,5 +32,5 @@ from localization.bags.writer import (
 
 __all__ = ["BagError", "BagInfo", "BagMessage", "BagReader", "BagWriter", "DEFAULT_TYPESTORE", "LATCHED_QOS",
            "RELIABLE_QOS", "ROS2_BAG_SUFFIXES", "TopicInfo", "bag_info", "jazzy_typestore", "make_header",
-           "make_laser_scan", "make_odometry", "make_tf_message", "make_time", "make_transform_stamped", "open_bag",
-           "read_messages", "stamp_to_ns", "topics"]
+           "make_laser_scan", "make_odometry", "make_pose", "make_tf_message", "make_time", "make_transform_stamped",
+           "open_bag", "read_messages", "stamp_to_ns", "topics"]

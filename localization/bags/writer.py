@@ -201,6 +201,13 @@ def _quat(typestore, yaw: float):
     return typestore.types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
 
 
+def make_pose(typestore, x: float, y: float, yaw: float):
+    """``geometry_msgs/msg/Pose``: planar pose (x, y, yaw)."""
+    T = typestore.types
+    return T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
+                                       orientation=_quat(typestore, float(yaw)))
+
+
 def _cov36(cov) -> np.ndarray:
     out = np.zeros(36, dtype=np.float64)
     if cov is not None:
@@ -231,8 +238,7 @@ def make_odometry(typestore, t_ns: int, frame_id: str, child_frame_id: str, x: f
                   twist_covariance=None):
     """``nav_msgs/msg/Odometry``: planar pose (x, y, yaw) in ``frame_id``, twist in ``child_frame_id``."""
     T = typestore.types
-    pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-                                       orientation=_quat(typestore, float(yaw)))
+    pose = make_pose(typestore, x, y, yaw)
     twist = T["geometry_msgs/msg/Twist"](linear=T["geometry_msgs/msg/Vector3"](x=float(vx), y=float(vy), z=0.0),
                                          angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=float(wz)))
     return T["nav_msgs/msg/Odometry"](

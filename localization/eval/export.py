@@ -33,6 +33,7 @@ from localization.bags import (
     make_header,
     make_laser_scan,
     make_odometry,
+    make_pose,
     make_tf_message,
     make_transform_stamped,
 )
@@ -69,17 +70,10 @@ class ReplayRecorder:
             self._last_cloud = scan.stamp
 
 
-def _pose(T, x, y, yaw):
-    q = np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
-    return T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-                                       orientation=T["geometry_msgs/msg/Quaternion"](
-                                           x=0.0, y=0.0, z=float(q[2]), w=float(q[3])))
-
-
 def _path(w, t_ns, frame, t, poses):
     T = w.typestore.types
     stamped = [T["geometry_msgs/msg/PoseStamped"](header=make_header(w.typestore, _ns(ti), frame),
-                                                  pose=_pose(T, *p)) for ti, p in zip(t, poses)
+                                                  pose=make_pose(w.typestore, *p)) for ti, p in zip(t, poses)
                if np.all(np.isfinite(p))]
     return T["nav_msgs/msg/Path"](header=make_header(w.typestore, t_ns, frame), poses=stamped)
 
@@ -89,7 +83,7 @@ def _grid(w, occupancy_map, t_ns, frame):
     ox, oy, oyaw = (float(v) for v in occupancy_map.origin)
     info = T["nav_msgs/msg/MapMetaData"](
         map_load_time=make_header(w.typestore, t_ns, frame).stamp, resolution=float(occupancy_map.resolution),
-        width=int(occupancy_map.width), height=int(occupancy_map.height), origin=_pose(T, ox, oy, oyaw))
+        width=int(occupancy_map.width), height=int(occupancy_map.height), origin=make_pose(w.typestore, ox, oy, oyaw))
     data = np.ascontiguousarray(occupancy_map.data, dtype=np.int8).ravel()
     return T["nav_msgs/msg/OccupancyGrid"](header=make_header(w.typestore, t_ns, frame), info=info, data=data)
 
@@ -146,7 +140,7 @@ def write_run_mcap(path, res, recorder: ReplayRecorder, map_frame: str = "map",
                     range_max=s.range_max, time_increment=s.time_increment, scan_time=s.scan_time))
             elif topic == "/pf/particles":
                 w.write(topic, t_ns, T["geometry_msgs/msg/PoseArray"](
-                    header=make_header(w.typestore, t_ns, map_frame), poses=[_pose(T, *p) for p in item]))
+                    header=make_header(w.typestore, t_ns, map_frame), poses=[make_pose(w.typestore, *p) for p in item]))
             elif topic == "/pf/pose/odom":
                 x, y, yaw = item
                 w.write(topic, t_ns, make_odometry(w.typestore, t_ns, map_frame, ESTIMATE_FRAME, x, y, yaw))

@@ -12,10 +12,11 @@ from localization.bags import (
     make_header,
     make_laser_scan,
     make_odometry,
+    make_pose,
     make_tf_message,
     make_transform_stamped,
 )
-from localization.core.geometry import wrap_angle, yaw_to_quaternion
+from localization.core.geometry import wrap_angle
 from localization.core.occupancy_map import OccupancyMap, load_map
 from localization.sim.config import PHYSICS_RATE_HZ, SENSOR_START_DELAY_NS, T0_NS, SimConfig, SimulationError
 from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory
@@ -130,12 +131,10 @@ def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = 
 def make_pose_with_covariance(typestore, t_ns: int, frame_id: str, pose, std=(0.5, 0.2)):
     """``geometry_msgs/msg/PoseWithCovarianceStamped`` (what RViz's "2D Pose Estimate" sends)."""
     T = typestore.types
-    qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(float(pose[2])))
     cov = np.zeros(36)
     cov[0] = cov[7] = float(std[0]) ** 2
     cov[35] = float(std[1]) ** 2
-    p = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(pose[0]), y=float(pose[1]), z=0.0),
-                                    orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+    p = make_pose(typestore, *pose[:3])
     return T["geometry_msgs/msg/PoseWithCovarianceStamped"](
         header=make_header(typestore, t_ns, frame_id),
         pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=p, covariance=cov))
