@@ -93,6 +93,8 @@ class LookupTableRayCaster(RayCaster):
     ``table``: a ready (F, theta_bins) uint16 table, else it is built here; use ``for_map`` to
     go through the disk cache."""
 
+    _build_consts = None  # the compiled build's inputs while rows are being built (_make_build_consts)
+
     def __init__(self, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,
                  table: np.ndarray | None = None, interpolation: str = "line", refine: float = 0.0,
                  use_numba: bool = HAVE_NUMBA):
@@ -164,38 +166,49 @@ class LookupTableRayCaster(RayCaster):
     def build_table(self) -> np.ndarray:
         """Exact ranges from every free cell centre along every bin heading, in fixed point."""
         rows, cols = np.nonzero(self.map.free)
-        th = self.bin_angles
         table = np.empty((rows.size, self.theta_bins), dtype=np.uint16)
         if self.use_numba:
-            # chessboard distance: a lower bound of the Euclidean one, so the jumps stay safe
-            clearance = chessboard_clearance(self.blocking)
-            rows, cols, cos_k, sin_k = rows.astype(np.int64), cols.astype(np.int64), np.cos(th), np.sin(th)
-            jump = np.abs(np.abs(cos_k) - np.abs(sin_k)) > 1e-9  # not along an exact diagonal
-
-            def build(part: slice) -> None:  # the kernel releases the GIL: one thread per core
-                K.build_kernel(self.blocking, clearance, rows[part], cols[part], cos_k, sin_k, jump, self.max_cells,
-                              self.units_per_cell, table[part])
-
+            self._build_consts = self._make_build_consts()  # once, before the threads share it
             workers = max(1, min(BUILD_THREADS, os.cpu_count() or 1))
             chunk = -(-rows.size // (4 * workers))  # a few chunks per thread: even finishing times
-            parts = [slice(a, a + chunk) for a in range(0, rows.size, chunk)]
-            if workers == 1:
-                for part in parts:
-                    build(part)
-            else:
-                from concurrent.futures import ThreadPoolExecutor
-                with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="range_table") as pool:
-                    list(pool.map(build, parts))
-            return table
-        chunk = max(1, 2_000_000 // self.theta_bins)
-        for start in range(0, rows.size, chunk):
-            r, c = rows[start:start + chunk], cols[start:start + chunk]
-            ox = np.repeat(c + 1.5, th.size)
-            oy = np.repeat(r + 1.5, th.size)
-            cells = self._cast_grid(ox, oy, np.tile(np.cos(th), r.size), np.tile(np.sin(th), r.size))
-            units = np.minimum(np.minimum(cells, self.max_cells) * self.units_per_cell + 0.5, TABLE_MAX_UNITS)
-            table[start:start + r.size] = units.astype(np.uint16).reshape(r.size, th.size)
+        else:
+            workers, chunk = 1, max(1, 2_000_000 // self.theta_bins)  # bounded numpy temporaries
+        parts = [slice(a, a + chunk) for a in range(0, rows.size, chunk)]
+
+        def build(part: slice) -> None:  # the kernel releases the GIL: one thread per core
+            self._build_rows(rows[part], cols[part], table[part])
+
+        if workers == 1:
+            for part in parts:
+                build(part)
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+            with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="range_table") as pool:
+                list(pool.map(build, parts))
+        self._build_consts = None  # the full table is built: its clearance grid is not needed again
         return table
+
+    def _make_build_consts(self) -> tuple:
+        """The compiled build's inputs: the clearance grid (chessboard distance, a lower bound of the
+        Euclidean one, so the marcher's jumps stay safe) and the bin headings (cos, sin, and which
+        ones are not an exact diagonal)."""
+        th = self.bin_angles
+        cos_k, sin_k = np.cos(th), np.sin(th)
+        return chessboard_clearance(self.blocking), cos_k, sin_k, np.abs(np.abs(cos_k) - np.abs(sin_k)) > 1e-9
+
+    def _build_rows(self, rows, cols, out) -> None:
+        """The table rows of free cells (``rows``, ``cols``) into ``out`` (the compiled marcher, or
+        the numpy caster); shared by the full build and the tiled table's tiles."""
+        if self.use_numba:
+            clearance, cos_k, sin_k, jump = self._build_consts
+            K.build_kernel(self.blocking, clearance, np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64),
+                           cos_k, sin_k, jump, self.max_cells, self.units_per_cell, out)
+            return
+        th = self.bin_angles
+        cells = self._cast_grid(np.repeat(cols + 1.5, th.size), np.repeat(rows + 1.5, th.size),
+                                np.tile(np.cos(th), rows.size), np.tile(np.sin(th), rows.size))
+        units = np.minimum(np.minimum(cells, self.max_cells) * self.units_per_cell + 0.5, TABLE_MAX_UNITS)
+        out[:] = units.astype(np.uint16).reshape(rows.size, th.size)
 
     @classmethod
     def for_map(cls, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,

@@ -33,7 +33,6 @@ import time
 import numpy as np
 
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.raycast import kernels as K
 from localization.core.raycast.exact import RayCaster
 from localization.core.raycast.kernels import HAVE_NUMBA, TABLE_MAX_UNITS
 from localization.core.raycast.lookup_table import (  # noqa: F401 - chessboard_*: re-exported
@@ -84,10 +83,7 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         self._table_buffer = mmap.mmap(-1, max(1, self.num_free * theta_bins * 2))
         self.table = np.frombuffer(self._table_buffer, dtype=np.uint16,
                                    count=self.num_free * theta_bins).reshape(self.num_free, theta_bins)
-        self._clearance = chessboard_clearance(self.blocking) if self.use_numba else None
-        th = self.bin_angles
-        self._cos_k, self._sin_k = np.cos(th), np.sin(th)
-        self._jump = np.abs(np.abs(self._cos_k) - np.abs(self._sin_k)) > 1e-9
+        self._build_consts = self._make_build_consts() if self.use_numba else None  # kept: tiles come later
         self._build_lock = threading.Lock()
         self.loaded_from_cache, self.table_source, self.cache_path = False, "tiles", None
         self.build_seconds = 0.0  # seconds spent building tiles so far
@@ -179,16 +175,7 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
         r0, c0 = tr * self.tile, tc * self.tile
         rows, cols = np.nonzero(self.map.free[r0:r0 + self.tile, c0:c0 + self.tile])
         rows, cols = rows + r0, cols + c0
-        out = self.table[self.tile_start[t]:self.tile_start[t + 1]]
-        if self.use_numba:
-            K.build_kernel(self.blocking, self._clearance, rows.astype(np.int64), cols.astype(np.int64),
-                           self._cos_k, self._sin_k, self._jump, self.max_cells, self.units_per_cell, out)
-        else:
-            th = self.bin_angles
-            cells = self._cast_grid(np.repeat(cols + 1.5, th.size), np.repeat(rows + 1.5, th.size),
-                                    np.tile(self._cos_k, rows.size), np.tile(self._sin_k, rows.size))
-            units = np.minimum(np.minimum(cells, self.max_cells) * self.units_per_cell + 0.5, TABLE_MAX_UNITS)
-            out[:] = units.astype(np.uint16).reshape(rows.size, th.size)
+        self._build_rows(rows, cols, self.table[self.tile_start[t]:self.tile_start[t + 1]])
         self.built[t] = True
 
     def build_table(self) -> np.ndarray:
