@@ -293,8 +293,7 @@ class Localizer:
         t0 = time.perf_counter()
         seeds = seed_from_scan(self.map, self.filter.sensor_model, scan.ranges, scan.angles,
                                self.filter.num_particles, self.filter.rng, ScanSeedParams.from_parameters(self.params))
-        self.filter.particles = seeds.poses
-        self.filter.log_weights = np.full(len(seeds.poses), -np.log(len(seeds.poses)))
+        self.filter.set_particles(seeds.poses)
         self.log.info(f"global localization: {seeds.lattice_poses} lattice poses scored against the scan in "
                       f"{time.perf_counter() - t0:.2f} s; {len(seeds.poses)} particles drawn around the best "
                       f"{len(seeds.candidates)}")

@@ -88,6 +88,12 @@ class MonteCarloLocalizer:
             self.log_weights = np.full(n, -np.log(n))
         self.num_particles = n
 
+    def set_particles(self, poses) -> None:
+        """Replace the cloud by ``poses`` (N, 3), equally weighted (e.g. seeds of a global start)."""
+        self.particles = np.asarray(poses, dtype=float).reshape(-1, 3)
+        self.num_particles = len(self.particles)
+        self._reset_weights()
+
     def _reset_weights(self) -> None:
         self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
         self.initialized = True
@@ -125,13 +131,8 @@ class MonteCarloLocalizer:
             weights = self.weights
         if self.kld is not None and not self.kld_hold:  # adaptive count: KLD draws the indices and their number
             draw = self.kld.resample(self.particles, weights, self.rng)
-            n = draw.indices.size
-            self.particles = self.particles[draw.indices]
-            self.num_particles = n
-            if self.roughening.any():
-                self.particles += self.rng.standard_normal((n, 3)) * self.roughening
-                self.particles[:, 2] = wrap_angle(self.particles[:, 2])
-            self.log_weights = np.full(n, -np.log(n))
+            self.num_particles = draw.indices.size
+            self._take_roughened(self.particles[draw.indices])
             return
         n = self.num_particles
         if resample_kernel is not None and self.particles.shape == (n, 3) and len(weights) == n:
@@ -143,13 +144,17 @@ class MonteCarloLocalizer:
             resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
                              self.roughening, out)
             self.particles = out
-            self.log_weights = np.full(n, -np.log(n))
+            self._reset_weights()
             return
-        self.particles = self.particles[systematic_indices(weights, n, self.rng.random())]
+        self._take_roughened(self.particles[systematic_indices(weights, n, self.rng.random())])
+
+    def _take_roughened(self, drawn: np.ndarray) -> None:
+        """The drawn particles (a new array), roughened by N(0, roughening²) jitter, weights uniform."""
         if self.roughening.any():
-            self.particles += self.rng.standard_normal((n, 3)) * self.roughening
-            self.particles[:, 2] = wrap_angle(self.particles[:, 2])
-        self.log_weights = np.full(n, -np.log(n))
+            drawn += self.rng.standard_normal((len(drawn), 3)) * self.roughening
+            drawn[:, 2] = wrap_angle(drawn[:, 2])
+        self.particles = drawn
+        self._reset_weights()
 
     # ------------------------------------------------------------------ estimate
     @property
