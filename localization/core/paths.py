@@ -72,6 +72,26 @@ def resolve_map_path(name_or_path) -> Path:
     return package_maps_dir() / f"{name_or_path}.yaml"
 
 
+def split_ros_args(argv) -> tuple[list[str], list[str]]:
+    """Split a command line into (own arguments, the ``--ros-args ... [--]`` blocks for rclpy), each
+    in its original order."""
+    own: list[str] = []
+    ros: list[str] = []
+    inside = False
+    for arg in argv:
+        if arg == "--ros-args":
+            inside = True
+            ros.append(arg)
+        elif inside and arg == "--":
+            inside = False
+            ros.append(arg)
+        elif inside:
+            ros.append(arg)
+        else:
+            own.append(arg)
+    return own, ros
+
+
 def resolve_params_path(name_or_path) -> Path:
     """A parameter file as given, or a bare name (``real_params``) in the package's ``config/``."""
     path = Path(name_or_path).expanduser()

@@ -596,34 +596,29 @@ def usage(prog: str = NODE_NAME) -> str:
 def prepare_args(argv: list[str]) -> tuple[list[str] | None, int | None]:
     """(arguments for rclpy, None) or (None, exit code) after ``--help`` or a bad ``--params-file``.
     A ``--params-file`` given by name (``real_params``) is resolved in the package's config/."""
-    from localization.core.paths import resolve_params_path
+    from localization.core.paths import resolve_params_path, split_ros_args
     prog = os.path.basename(argv[0]) if argv else NODE_NAME
-    out, inside = list(argv[:1]), False
-    rest = list(argv[1:])
+    own, ros = split_ros_args(argv[1:])
+    if any(arg in ("-h", "--help") for arg in own):
+        print(usage(prog))
+        return None, 0
+    out = list(argv[:1]) + own
     i = 0
-    while i < len(rest):
-        arg = rest[i]
-        if arg == "--ros-args":
-            inside = True
-        elif arg == "--":
-            inside = False
-        elif not inside and arg in ("-h", "--help"):
-            print(usage(prog))
-            return None, 0
-        elif inside and arg == "--params-file":
-            if i + 1 >= len(rest):
-                print(f"{prog}: error: --params-file needs a file", file=sys.stderr)
-                return None, 2
-            path = resolve_params_path(rest[i + 1])
-            if not path.is_file():
-                print(f"{prog}: error: parameter file not found: {rest[i + 1]} (a path, or a name in "
-                      f"{path.parent})", file=sys.stderr)
-                return None, 1
-            out += [arg, str(path)]
-            i += 2
+    while i < len(ros):
+        if ros[i] != "--params-file":
+            out.append(ros[i])
+            i += 1
             continue
-        out.append(arg)
-        i += 1
+        if i + 1 >= len(ros):
+            print(f"{prog}: error: --params-file needs a file", file=sys.stderr)
+            return None, 2
+        path = resolve_params_path(ros[i + 1])
+        if not path.is_file():
+            print(f"{prog}: error: parameter file not found: {ros[i + 1]} (a path, or a name in "
+                  f"{path.parent})", file=sys.stderr)
+            return None, 1
+        out += ["--params-file", str(path)]
+        i += 2
     return out, None
 
 

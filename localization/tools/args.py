@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Sequence
 from pathlib import Path
 
 from localization.core.parameters import ParameterError, Parameters
@@ -82,20 +81,3 @@ def load_parameters(params_file, overrides: dict) -> Parameters:
     return Parameters.from_yaml(path, **overrides)
 
 
-def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """Split ``argv`` into (own arguments, ``--ros-args ... [--]`` blocks for rclpy)."""
-    own: list[str] = []
-    ros: list[str] = []
-    inside = False
-    for arg in argv:
-        if arg == "--ros-args":
-            inside = True
-            ros.append(arg)
-        elif inside and arg == "--":
-            inside = False
-            ros.append(arg)
-        elif inside:
-            ros.append(arg)
-        else:
-            own.append(arg)
-    return own, ros

@@ -49,7 +49,8 @@ from collections.abc import Sequence
 
 from localization.bags import BagError, open_bag
 from localization.bags.writer import LATCHED_TOPICS
-from localization.tools.args import map_name_or_yaml, non_negative_float, pose, positive_float, split_ros_args
+from localization.core.paths import split_ros_args
+from localization.tools.args import map_name_or_yaml, non_negative_float, pose, positive_float
 
 PROG = "localization-play"
 INITIAL_POSE_COVARIANCE = ((0.3 ** 2, 0.0, 0.0), (0.0, 0.3 ** 2, 0.0), (0.0, 0.0, 0.1 ** 2))  # m², m², rad²
