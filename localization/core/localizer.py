@@ -126,6 +126,7 @@ class Localizer:
         self._seed_pending = False  # global_init scan: the next scan seeds the global spread
         self.recoveries = 0  # re-spreads after the filter was judged lost (or every particle impossible)
         self.map_pending = False  # a map arrived and its ray caster is being prepared (prepare_ray_caster)
+        self._corrections: list[PoseEstimate] = []  # sensor-corrected estimates not yet taken
 
     # ------------------------------------------------------------------ state
     @property
@@ -184,6 +185,35 @@ class Localizer:
         if t is None or t < oldest - gap or t > latest + gap:
             return oldest
         return t
+
+    @property
+    def num_particles(self) -> int:
+        return self.filter.num_particles
+
+    def particles(self) -> np.ndarray:
+        """A copy of the particles (N, 3) as they are now (read under the filter lock)."""
+        with self._lock:
+            return np.array(self.filter.particles, dtype=float, copy=True)
+
+    @property
+    def laser_offset(self) -> np.ndarray:
+        """The laser pose (x, y, yaw) in the robot frame the sensor model uses."""
+        return np.array(self.filter.sensor_model.laser_offset, dtype=float, copy=True)
+
+    def take_corrections(self) -> list[PoseEstimate]:
+        """The sensor-corrected estimates made since the last call, oldest first, each stamped with
+        the time it describes (a scan's time on the scan clock). The node publishes them on /pf/pose."""
+        with self._odom_lock:
+            out, self._corrections = self._corrections, []
+        return out
+
+    def begin_map_preparation(self) -> None:
+        """A map is being prepared elsewhere (off-thread): inputs are reported as waiting for it."""
+        self.map_pending = True
+
+    def cancel_map_preparation(self) -> None:
+        """Preparing the pending map failed: inputs are no longer reported as waiting for it."""
+        self.map_pending = False
 
     # ------------------------------------------------------------------ inputs
     def set_map(self, occupancy_map: OccupancyMap, ray_caster=None) -> None:
@@ -531,4 +561,5 @@ class Localizer:
         with self._odom_lock:
             self._estimate = PoseEstimate(stamp, est.pose, est.covariance)
             self._estimate_t = self._t_filter if t_s is None else t_s
+            self._corrections.append(self._estimate)
         return self._estimate
