@@ -29,7 +29,7 @@ def good_scan(n=200):
 
 
 def assert_sane(loc):
-    assert np.all(np.isfinite(loc.filter.particles))
+    assert np.all(np.isfinite(loc.particles()))
     est = loc.estimate
     assert est is not None and np.all(np.isfinite(est.pose)) and np.all(np.isfinite(est.covariance))
 
@@ -63,13 +63,13 @@ def test_reversed_or_broken_angles(loc, angles):
 
 def test_odometry_nan_absurd_and_backwards(loc, caplog):
     loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
-    before = loc.filter.particles.copy()
+    before = loc.particles()
     with caplog.at_level(logging.WARNING):
         assert loc.on_odometry(TwistData(1.02, np.nan, 0.0, 0.0)) is None
         assert loc.on_odometry(TwistData(1.04, 500.0, 0.0, 0.0)) is None
         assert loc.on_odometry(TwistData(0.5, 1.0, 0.0, 0.0)) is None  # backwards (bag loop)
         assert loc.on_odometry(TwistData(30.0, 1.0, 0.0, 0.0)) is None  # gap of many seconds
-    assert np.array_equal(loc.filter.particles, before)
+    assert np.array_equal(loc.particles(), before)
     assert "non-finite" in caplog.text and "absurd" in caplog.text and "jumped" in caplog.text
     assert loc.on_odometry(TwistData(30.02, 1.0, 0.0, 0.0)) is not None
     assert_sane(loc)
@@ -101,7 +101,7 @@ def test_initial_pose_covariance_that_is_not_a_spread_falls_back_to_the_default(
         assert loc.set_initial_pose([5.0, 1.5, 0.0], cov)
     assert "not a usable spread" in caplog.text
     assert_sane(loc)
-    assert np.abs(loc.filter.particles[:, 0] - 5.0).max() < 10 * loc.params.initial_std_xy
+    assert np.abs(loc.particles()[:, 0] - 5.0).max() < 10 * loc.params.initial_std_xy
 
 
 def test_maps_without_free_space_are_rejected_and_old_map_kept(loc):
@@ -139,7 +139,7 @@ def test_fuzz_callbacks_never_crash_or_emit_nan(loc, stamp, vx, vy, wz, ranges, 
     out = loc.on_scan(ScanData(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax))
     if out is not None:
         assert np.all(np.isfinite(out.pose)) and np.all(np.isfinite(out.covariance))
-    assert np.all(np.isfinite(loc.filter.particles))
+    assert np.all(np.isfinite(loc.particles()))
 
 
 def test_degenerate_filter_recovers_by_spreading_globally(caplog):
@@ -147,12 +147,12 @@ def test_degenerate_filter_recovers_by_spreading_globally(caplog):
     loc = Localizer(Parameters(num_particles=300, random_seed=3, ray_caster="distance_transform"))
     loc.set_map(m)
     loc.set_initial_pose([5.0, 1.5, 0.0])
-    loc.filter.particles[:, :2] = [-50.0, -50.0]  # the car was carried off: every particle impossible
+    loc._pf.particles[:, :2] = [-50.0, -50.0]  # the car was carried off: every particle impossible
     with caplog.at_level(logging.WARNING):
         for k in range(3):
             assert loc.on_scan(ScanData(float(k), *good_scan())) is None
     assert "re-spreading" in caplog.text
-    assert m.is_free(loc.filter.particles[:, :2]).mean() > 0.95
+    assert m.is_free(loc.particles()[:, :2]).mean() > 0.95
     assert_sane(loc)
 
 
@@ -163,11 +163,11 @@ def test_scan_stamped_long_before_the_odometry_is_ignored(loc, caplog):
         assert loc.on_scan(ScanData(5.0, *good_scan())) is None  # 5 s in the past: stale or a clock jump
     assert "before the latest odometry" in caplog.text
     assert loc.estimate.stamp == 10.02
-    assert loc.on_scan(ScanData(10.03, *good_scan())) is not None
+    assert loc.on_scan(ScanData(10.01, *good_scan())) is not None
     # a bag loop: odometry jumps back (reference reset), then scans of the new loop are used again
     assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
     loc.on_odometry(TwistData(0.02, 1.0, 0.0, 0.0))
-    assert loc.on_scan(ScanData(0.03, *good_scan())) is not None
+    assert loc.on_scan(ScanData(0.01, *good_scan())) is not None
 
 
 def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):

@@ -74,7 +74,7 @@ def test_global_init_is_a_checked_parameter():
 
 @pytest.mark.parametrize("method", ["scan", "uniform"])
 def test_first_scan_seeds_only_with_global_init_scan(method, monkeypatch):
-    import localization.core.localizer as L
+    import localization.core.global_seeder as L
     calls = []
     monkeypatch.setattr(L, "seed_from_scan", lambda *a, **k: calls.append(1) or seed_from_scan(*a, **k))
     m = room_map()
@@ -108,7 +108,7 @@ def test_global_localization_in_the_long_corridor_within_seconds():
     run = RB.run_recording(rec, loc, init="global")
     t = RB.settle_time(RB.ct_errors(rec, run), float(rec.odometry.t[0]))
     assert t is not None and t <= 5.0
-    assert not loc.global_mode and loc.filter.num_particles == loc.params.num_particles
+    assert not loc.global_mode and loc.num_particles == loc.params.num_particles
     assert run.recoveries == 0
-    laser = compose(run.est_poses[-1], loc.filter.sensor_model.laser_offset)
+    laser = compose(run.est_poses[-1], loc.laser_offset)
     assert stata.is_free(laser[None, :2])[0]

@@ -122,7 +122,7 @@ def test_kidnapped_robot_recovers(stata, caplog):
     assert cmp.ct_error[(cmp.t > 1.0) & (cmp.t < kidnap_at)].max() < 0.3  # tracking before
     back = RB.settle_time(cmp, kidnap_at)
     assert back is not None and back < 10.0, back
-    assert loc.filter.num_particles == loc.params.num_particles  # shrunk back after converging
+    assert loc.num_particles == loc.params.num_particles  # shrunk back after converging
     assert run.health[-20:].min() > 0.7
 
 
@@ -131,12 +131,12 @@ def test_global_localization_converges_and_shrinks(stata):
     loc = Localizer(params(global_num_particles=20000), logging.getLogger("test.global"))
     loc.set_map(stata)
     loc.initialize_global(0.0)
-    assert loc.filter.num_particles == 20000 and loc.global_mode and math.isnan(loc.health)
+    assert loc.num_particles == 20000 and loc.global_mode and math.isnan(loc.health)
     run = RB.run_recording(rec, loc, init="none")
     cmp = RB.ct_errors(rec, run)
     t = RB.settle_time(cmp, 0.0)
     assert t is not None and t < 8.0
-    assert not loc.global_mode and loc.filter.num_particles == loc.params.num_particles
+    assert not loc.global_mode and loc.num_particles == loc.params.num_particles
 
 
 def test_recovery_can_be_switched_off(stata):
@@ -168,11 +168,11 @@ def test_stationary_car_does_not_drift_and_tightens_once():
     spread1 = cloud_spread(first.covariance)
     assert spread1 < spread0
     mean1 = first.pose.copy()
-    particles1 = loc.filter.particles.copy()
+    particles1 = loc.particles()
     for k in range(1, 400):  # 8 s standing: zero twist at 50 Hz, scans in between
         loc.on_odometry(TwistData(0.02 * k, 0.0, 0.0, 0.0))
         scan = ScanData(0.02 * k + 0.01, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)
         assert loc.on_scan(scan) is None
-    assert np.array_equal(loc.filter.particles, particles1)  # no motion noise, no resampling jitter
+    assert np.array_equal(loc.particles(), particles1)  # no motion noise, no resampling jitter
     est = loc.estimate
     assert np.allclose(est.pose, mean1) and cloud_spread(est.covariance) <= spread1 + 1e-12

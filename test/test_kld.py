@@ -84,7 +84,7 @@ def test_the_filter_shrinks_when_tight_and_grows_when_spread():
                         random_seed=0, recovery=False, global_init="uniform")
     loc = Localizer(params)
     loc.set_map(m)
-    pf = loc.filter
+    pf = loc._pf
     loc.set_initial_pose([5.0, 1.5, 0.0])
     pf.initialize_gaussian([5.0, 1.5, 0.0], std=(0.05, 0.05, 0.02))
     pf.resample()

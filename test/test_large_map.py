@@ -140,10 +140,10 @@ def test_the_localizer_takes_range_table_lazy_cells_on_both_map_paths():
     assert isinstance(Localizer(params).prepare_ray_caster(m), TiledLookupTableRayCaster)  # the node's path
     loc = Localizer(params)
     loc.set_map(m)
-    assert isinstance(loc.filter.sensor_model.ray_caster, TiledLookupTableRayCaster)
+    assert isinstance(loc._pf.sensor_model.ray_caster, TiledLookupTableRayCaster)
     eager = Localizer(Parameters(ray_caster="lookup_table", random_seed=0, num_particles=200))
     eager.set_map(m)
-    assert type(eager.filter.sensor_model.ray_caster) is LookupTableRayCaster  # small maps: the full table
+    assert type(eager._pf.sensor_model.ray_caster) is LookupTableRayCaster  # small maps: the full table
 
 
 def _rss_kb() -> int:

@@ -9,8 +9,10 @@ corrected by the car's calibration (the localizer's parameters)::
     ωz'   = odom_yaw_rate_scale · ωz + odom_yaw_rate_bias
 
 The corrected twist is constant over (t'_{k−1}, t'_k]. Past the newest message the last twist is
-extrapolated for at most ``MAX_EXTRAPOLATION_S`` (then the car is taken as standing: odometry that
-stopped does not drive the particles on); before the oldest stamp nothing is known (no motion).
+extrapolated for at most ``extrapolation`` seconds (then the robot is taken as standing: odometry
+that stopped does not drive the particles on); before the oldest stamp nothing is known (no
+motion). The localizer only extrapolates a scan that waited ``scan_max_wait`` for odometry in
+vain, and says so.
 The motion between any two times is the composition of the constant-twist arcs
 (``geometry.integrate_twist``) of the pieces between them (``segments``, ``motion``); ``twist_at``
 is the twist holding at a time (the deskew of a sweep uses it).
@@ -23,8 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.geometry import compose, integrate_twist, inverse
-
-MAX_EXTRAPOLATION_S = 0.1  # s: the last twist is extrapolated at most this far past the newest message
 
 
 @dataclass
@@ -45,7 +45,8 @@ class OdometryBuffer:
     what is no longer needed. Not thread safe by itself: the localizer guards it with a lock."""
 
     def __init__(self, time_offset: float = 0.0, speed_scale: float = 1.0, yaw_rate_scale: float = 1.0,
-                 yaw_rate_bias: float = 0.0):
+                 yaw_rate_bias: float = 0.0, extrapolation: float = 0.1):
+        self.extrapolation = float(extrapolation)  # s: the last twist holds this long past the newest stamp
         self.time_offset = float(time_offset)  # s
         self.speed_scale = float(speed_scale)
         self.yaw_rate_scale = float(yaw_rate_scale)
@@ -90,7 +91,7 @@ class OdometryBuffer:
     def twist_at(self, t: float) -> np.ndarray:
         """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end; zero
         before the oldest stamp, past the extrapolation limit, or when empty)."""
-        if not self._t or t <= self._t[0] or t >= self._t[-1] + MAX_EXTRAPOLATION_S:
+        if not self._t or t <= self._t[0] or t >= self._t[-1] + self.extrapolation:
             return np.zeros(3)
         k = min(int(np.searchsorted(self._t, t, side="left")), len(self._t) - 1)
         return np.array(self._twist[k])
@@ -101,7 +102,7 @@ class OdometryBuffer:
         if not t1 > t0:
             return np.zeros(0), np.zeros((0, 3))
         stamps = np.asarray(self._t, dtype=float)
-        cuts = np.append(stamps, stamps[-1] + MAX_EXTRAPOLATION_S) if stamps.size else stamps
+        cuts = np.append(stamps, stamps[-1] + self.extrapolation) if stamps.size else stamps
         inner = cuts[(cuts > t0) & (cuts < t1)]
         edges = np.concatenate([[t0], inner, [t1]])
         dts = np.diff(edges)
@@ -109,10 +110,17 @@ class OdometryBuffer:
         if stamps.size:
             mid = 0.5 * (edges[:-1] + edges[1:])
             k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
-            known = (mid > stamps[0]) & (mid < stamps[-1] + MAX_EXTRAPOLATION_S)
+            known = (mid > stamps[0]) & (mid < stamps[-1] + self.extrapolation)
             twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
         keep = dts > 0
         return dts[keep], twists[keep]
+
+    def travel(self, t0: float, t1: float) -> tuple[float, float]:
+        """Path length (m) and total rotation (rad) between t0 and t1 (t0 ≤ t1): Σ |v|·dt, Σ |ω|·dt."""
+        dts, twists = self.segments(t0, t1)
+        if not dts.size:
+            return 0.0, 0.0
+        return float(np.dot(dts, np.hypot(twists[:, 0], twists[:, 1]))), float(np.dot(dts, np.abs(twists[:, 2])))
 
     def motion(self, t0: float, t1: float) -> np.ndarray:
         """Robot-frame displacement [dx, dy, dθ] from time t0 to t1 (expressed in the robot frame

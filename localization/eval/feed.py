@@ -22,15 +22,18 @@ from localization.core.scan import ScanData
 
 @dataclass
 class FeedLog:
-    """What came out of the Localizer while feeding it."""
+    """What came out of the Localizer while feeding it. Stamps are on the scan clock (the time each
+    pose describes); ``est_t`` never goes backwards (what the node publishes on /pf/pose/odom)."""
 
-    est_t: list = field(default_factory=list)  # s, stamp of each published estimate
+    est_t: list = field(default_factory=list)  # s, time of each published estimate (non-decreasing)
     est_poses: list = field(default_factory=list)  # (3,) each
+    corrected_t: list = field(default_factory=list)  # s, each sensor-corrected estimate's scan time
+    corrected_poses: list = field(default_factory=list)  # (3,) each
     health_t: list = field(default_factory=list)  # s, after each sensor update with a finite health
     health: list = field(default_factory=list)
     particles_t: list = field(default_factory=list)  # s, after each sensor update
     particles: list = field(default_factory=list)  # the particle count then (varies with adaptive_particles)
-    sensor_times: list = field(default_factory=list)  # s inside on_scan, per sensor update
+    sensor_times: list = field(default_factory=list)  # s inside the call that made each sensor update
     motion_times: list = field(default_factory=list)  # s inside on_odometry, per estimate
     filter_time: float = 0.0  # s inside the Localizer (all calls)
     counts: dict = field(default_factory=lambda: {"scans": 0, "odometry": 0, "initial_poses": 0,
@@ -38,6 +41,9 @@ class FeedLog:
 
     def estimates(self) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.est_t, dtype=float), np.asarray(self.est_poses, dtype=float).reshape(-1, 3)
+
+    def corrections(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.corrected_t, dtype=float), np.asarray(self.corrected_poses, dtype=float).reshape(-1, 3)
 
 
 class Feeder:
@@ -55,13 +61,29 @@ class Feeder:
         return est, dt
 
     def _publish(self, est: PoseEstimate | None) -> None:
-        if est is not None:
+        """A pose goes out only when it is not older than the last one (as the node does)."""
+        if est is not None and (not self.log.est_t or est.stamp >= self.log.est_t[-1]):
             self.log.est_t.append(est.stamp)
             self.log.est_poses.append(np.array(est.pose, dtype=float))
+
+    def _corrections(self, dt: float) -> None:
+        """The sensor updates this call made (a scan may have waited for this odometry)."""
+        for est in self.localizer.take_corrections():
+            self.log.sensor_times.append(dt)
+            self.log.counts["sensor_updates"] += 1
+            self.log.corrected_t.append(est.stamp)
+            self.log.corrected_poses.append(np.array(est.pose, dtype=float))
+            self.log.particles_t.append(est.stamp)
+            self.log.particles.append(self.localizer.num_particles)
+            if math.isfinite(self.localizer.health):
+                self.log.health_t.append(est.stamp)
+                self.log.health.append(self.localizer.health)
+            self._publish(est)
 
     def odometry(self, twist: TwistData) -> PoseEstimate | None:
         self.log.counts["odometry"] += 1
         est, dt = self._timed(self.localizer.on_odometry, twist)
+        self._corrections(dt)
         if est is not None:
             self.log.motion_times.append(dt)
             self.log.counts["motion_updates"] += 1
@@ -71,15 +93,7 @@ class Feeder:
     def scan(self, scan: ScanData) -> PoseEstimate | None:
         self.log.counts["scans"] += 1
         est, dt = self._timed(self.localizer.on_scan, scan)
-        if est is not None:
-            self.log.sensor_times.append(dt)
-            self.log.counts["sensor_updates"] += 1
-            self.log.particles_t.append(scan.stamp)
-            self.log.particles.append(self.localizer.filter.num_particles)
-            if math.isfinite(self.localizer.health):
-                self.log.health_t.append(scan.stamp)
-                self.log.health.append(self.localizer.health)
-        self._publish(est)
+        self._corrections(dt)
         return est
 
     def initial_pose(self, pose, covariance, stamp: float) -> None:
