@@ -251,14 +251,14 @@ def block_sensor_updates(r, drive):
     one starts. Returns (entered, release, odometry events, scan events) of the drive's first second."""
     start_localizing(r, drive)
     entered, release = threading.Event(), threading.Event()
-    original = r.node.localizer.filter.sensor_update
+    original = r.node.localizer._pf.sensor_update
 
     def slow_update(*args, **kwargs):
         entered.set()
         release.wait(10.0)
         return original(*args, **kwargs)
 
-    r.node.localizer.filter.sensor_update = slow_update
+    r.node.localizer._pf.sensor_update = slow_update
     events = drive.until(1.0)
     return entered, release, [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
 
@@ -319,7 +319,7 @@ def run_seeded(runner, drive, seed, seconds=1.0):
     r.play(drive.until(seconds))
     r.settle(0.2)
     poses, particles, _ = r.probe.snapshot()
-    out = (np.array([odom_pose(m) for m in poses]), particles_array(particles[-1]), r.node.localizer.filter.particles)
+    out = (np.array([odom_pose(m) for m in poses]), particles_array(particles[-1]), r.node.localizer.particles())
     r.close()
     return out
 
@@ -346,7 +346,7 @@ def test_reinitialize_global_localization_service(runner):
     assert h.wait_until(future.done, 5.0)
     assert r.node.localizer.ready
     assert h.wait_until(lambda: len(r.probe.snapshot()[1]) == 1, 5.0)
-    cloud = r.node.localizer.filter.particles
+    cloud = r.node.localizer.particles()
     assert cloud[:, 0].std() > 3.0 and cloud[:, 1].std() > 3.0
     m = h.load_map("stata_basement")
     assert m.is_free(cloud[:, :2]).mean() > 0.99

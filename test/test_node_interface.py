@@ -189,7 +189,7 @@ def test_laser_pose_from_tf_static(runner, drive):
     r.send_initialpose(h.initialpose_msg(drive.initial_guess))
     r.settle(0.3)
     r.play(drive.until(0.2))
-    assert np.allclose(r.node.localizer.filter.sensor_model.laser_offset, [0.31, 0.02, 0.05], atol=1e-6)
+    assert np.allclose(r.node.localizer.laser_offset, [0.31, 0.02, 0.05], atol=1e-6)
     assert r.node.diagnostic_status().values["laser pose"].startswith("TF")
 
 
@@ -207,7 +207,7 @@ def play_past_tf_timeout(r, drive):
 def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
     r = runner(tf_timeout=0.2, laser_offset_x=0.2)
     play_past_tf_timeout(r, drive)
-    assert np.allclose(r.node.localizer.filter.sensor_model.laser_offset, [0.2, 0.0, 0.0])
+    assert np.allclose(r.node.localizer.laser_offset, [0.2, 0.0, 0.0])
     assert r.node.diagnostic_status().values["laser pose"] == "laser_offset_* parameters"
 
 
@@ -263,7 +263,7 @@ def test_pose_persisted_and_restored(runner, drive, tmp_path):
     assert np.allclose(stored.pose, final, atol=1e-3)  # the last write is at shutdown
 
     r2 = runner(**params)
-    assert r2.node.localizer.filter.initialized  # from the file, before any map or /initialpose
+    assert r2.node.localizer.ready  # from the file, before any map or /initialpose
     r2.send_map(h.map_msg("stata_basement"))
     assert r2.node.localizer.ready and r2.node.counts["initialpose"] == 0
     assert np.hypot(*(r2.node.localizer.estimate.pose[:2] - stored.pose[:2])) < 0.3

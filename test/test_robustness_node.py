@@ -164,7 +164,7 @@ def test_node_callbacks_survive_broken_messages_and_never_publish_nan(node, stre
     assert h.wait_until(lambda: n.map_worker.idle, 30.0)
     bad = [m for m in _outputs(n) if not _finite_msg(m)]
     assert not bad
-    assert np.all(np.isfinite(n.localizer.filter.particles))
+    assert np.all(np.isfinite(n.localizer.particles()))
     if n.localizer.estimate is not None:
         assert np.all(np.isfinite(n.localizer.estimate.pose))
 

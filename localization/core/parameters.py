@@ -242,6 +242,15 @@ PARAMETERS = [
     Param("odom_time_offset", 0.0, "odometry clock vs scan clock (s): an odometry message stamped t describes the "
           "motion up to t + odom_time_offset (odometry reporting 40 ms late: -0.04)",
           lambda v: _finite(v) and abs(v) <= 1.0, "in [-1, 1]"),
+    Param("scan_max_wait", 0.5, "a scan newer than the newest odometry waits this long (s, on the scan clock) for "
+          "the odometry that covers its time (as a TF message filter); then it is used with the last twist "
+          "extrapolated, with a warning. Must exceed how late the odometry arrives (-odom_time_offset plus its "
+          "period)", lambda v: _positive(v) and v <= 10.0, "in (0, 10]"),
+    Param("scan_queue_size", 20, "at most this many scans wait for odometry (the oldest leaves early, extrapolated, "
+          "when more arrive)", lambda v: isinstance(v, int) and 1 <= v <= 1000, "an integer in [1, 1000]"),
+    Param("update_every_n_scans", 0, "besides motion (update_min_distance / update_min_angle), every n-th scan "
+          "updates the filter even when the robot stands; 0: only on motion", lambda v: isinstance(v, int) and v >= 0,
+          "an integer >= 0"),
     Param("odom_speed_scale", 1.0, "speed used = odom_speed_scale x reported speed", _positive, "> 0"),
     Param("odom_yaw_rate_scale", 1.0, "yaw rate used = odom_yaw_rate_scale x reported yaw rate + odom_yaw_rate_bias",
           _positive, "> 0"),

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
-from localization.core.geometry import circular_mean, wrap_angle
+from localization.core.geometry import circular_mean, compose, wrap_angle
 from localization.core.motion import MotionModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.sensors import SensorModel
@@ -103,7 +103,11 @@ class MonteCarloLocalizer:
         """Move every particle by the robot-frame odometry delta [dx, dy, dθ]."""
         self.motion_model.evaluate(self.particles, odometry, out=self.particles)
 
-    def sensor_update(self, ranges, angles, offsets=None) -> SensorUpdateResult:
+    def shift(self, delta) -> None:
+        """Move every particle by the robot-frame delta exactly (no noise), e.g. back in time."""
+        self.particles = compose(self.particles, np.asarray(delta, dtype=float).reshape(3))
+
+    def sensor_update(self, ranges, angles, offsets=None, range_max=None) -> SensorUpdateResult:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
         per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``)."""
         if offsets is None:
