@@ -46,3 +46,11 @@ class GlobalSeeder:
         self.log.info(f"global localization: {seeds.lattice_poses} lattice poses scored against the scan in "
                       f"{time.perf_counter() - t0:.2f} s; {len(seeds.poses)} particles drawn around the best "
                       f"{len(seeds.candidates)}")
+
+    def converged(self, pf: MonteCarloLocalizer, pose) -> None:
+        """The spread has converged: back to num_particles (KLD shrinks an adaptive cloud itself)."""
+        pf.kld_hold = False
+        if pf.kld is None:
+            pf.resize(self.params.num_particles)
+        self.log.info(f"global localization converged at ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f}): "
+                      f"{pf.num_particles} particles")

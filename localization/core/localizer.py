@@ -39,24 +39,22 @@ import numpy as np
 from localization.core.compile_cache import ensure_compiled
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import MonteCarloLocalizer
-from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
 from localization.core.global_seeder import GlobalSeeder
+from localization.core.initial_pose import check_initial_pose
 from localization.core.motion import MotionModel, MotionNoiseParams
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.policies import ScanQueue, UpdatePolicy, UpdatePolicyParams
 from localization.core.recovery import RecoveryPolicy
-from localization.core.scan import ScanData, downsample_scan, scan_time, sweep_increment
+from localization.core.scan import ScanData, scan_time
+from localization.core.scan_step import ScanStep
 from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
 from localization.core.timeline import OdometryLimits, OdometryTimeline, PoseEstimate
 
-__all__ = ["Localizer", "PoseEstimate", "build_filter", "usable_covariance"]
-
-MAX_INITIAL_VARIANCE = 1.0e4  # m², rad²: an initial-pose covariance entry beyond this is not a pose estimate
-
+__all__ = ["Localizer", "PoseEstimate", "build_filter"]
 
 def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
     """The particle filter and its models, configured from parameters (the table's names)."""
@@ -71,11 +69,6 @@ def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
                                (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng, kld)
 
 
-def usable_covariance(cov) -> bool:
-    """A 3×3 initial-pose covariance that can spread a cloud (finite, not zero, not absurd)."""
-    return bool(np.all(np.isfinite(cov)) and np.trace(cov) > 0 and np.abs(cov).max() <= MAX_INITIAL_VARIANCE)
-
-
 def scan_problem(scan: ScanData) -> tuple[str, str]:
     """(key, message) of what makes a scan unusable; ("", "") when it is usable."""
     if np.size(scan.ranges) == 0:
@@ -84,6 +77,14 @@ def scan_problem(scan: ScanData) -> tuple[str, str]:
         return "scan-angles", (f"scan with non-finite stamp or angles ignored (t={scan.stamp}, "
                                f"angle_min={scan.angle_min}, angle_max={scan.angle_max})")
     return "", ""
+
+
+def waiting(loc: "Localizer", what: str) -> str:
+    """Why ``what`` (an input) produced no pose: what the localizer waits for."""
+    if loc.map_pending:
+        return f"{what}: waiting for the sensor model to prepare the map (range table being built or loaded)"
+    return f"{what}: " + ("no map received yet" if loc.map is None else
+                          "waiting for an initial pose (/initialpose) or global localization")
 
 
 class Localizer:
@@ -101,41 +102,33 @@ class Localizer:
         self._recovery = RecoveryPolicy(p)
         self.map: OccupancyMap | None = None
         self.map_pending = False  # a map's sensor-model preparation is under way elsewhere
-        self._t_filter: float | None = None  # s, scan clock: the time the particles describe
-        self._t_update: float | None = None  # s, scan clock: the last sensor update
         self._corrections: list[PoseEstimate] = []
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
-        self._impossible = 0
+        self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
         self.recoveries = 0
 
-    # ------------------------------------------------------------------ state (read by the node)
     has_map = property(lambda self: self.map is not None)
     ready = property(lambda self: self.map is not None and self._pf.initialized)
     health = property(lambda self: self._recovery.health, doc="scan-map agreement, fast average (NaN: none)")
     num_particles = property(lambda self: self._pf.num_particles)
     global_mode = property(lambda self: self._pf.kld_hold, doc="a global spread, not yet converged")
-    global_particle_count = property(lambda self: self._seeder.count)
     laser_offset = property(lambda self: np.array(self._pf.sensor_model.laser_offset, dtype=float))
     waiting_scans = property(lambda self: len(self._queue), doc="scans waiting for odometry to reach them")
 
-    def particles(self) -> np.ndarray:
+    def particles(self) -> np.ndarray:  # a copy (N, 3)
         with self._lock:
             return np.array(self._pf.particles, dtype=float)
 
-    @property
-    def estimate(self) -> PoseEstimate | None:
-        """The latest corrected estimate carried to the newest odometry's time (scan clock)."""
+    def estimate_at(self, t: float | None = None) -> PoseEstimate | None:
+        """The latest corrected estimate carried through the odometry to time t (scan clock; None: to
+        the newest odometry's time, what the node publishes), backwards too."""
         with self._lock:
-            latest = self._timeline.latest
-            return self._timeline.anchor if latest is None else self._timeline.pose_at(latest)
+            t = self._timeline.latest if t is None else t
+            return self._timeline.anchor if t is None else self._timeline.pose_at(t)
 
-    def estimate_at(self, t: float) -> PoseEstimate | None:
-        """The latest corrected estimate carried through the odometry to time t (scan clock)."""
-        with self._lock:
-            return self._timeline.pose_at(t)
+    estimate = property(estimate_at)
 
-    def scan_time(self, scan: ScanData) -> float:
-        return scan_time(scan)
+    scan_time = staticmethod(scan_time)  # a scan's time on the scan clock (core.scan)
 
     def take_corrections(self) -> list[PoseEstimate]:
         """Sensor-corrected estimates since the last call, oldest first, each at its scan's time."""
@@ -143,11 +136,10 @@ class Localizer:
             out, self._corrections = self._corrections, []
         return out
 
-    # ------------------------------------------------------------------ map, laser, initialisation
-    def begin_map_preparation(self) -> None:
+    def begin_map_preparation(self) -> None:  # a map is being prepared elsewhere: inputs wait for it
         self.map_pending = True
 
-    def cancel_map_preparation(self) -> None:
+    def cancel_map_preparation(self) -> None:  # preparing it failed: inputs no longer wait
         self.map_pending = False
 
     def map_preparation(self, occupancy_map: OccupancyMap):
@@ -190,29 +182,14 @@ class Localizer:
             self._policy.force()
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
-        """(Re-)initialise the cloud around a pose (covariance 3×3 over x, y, θ if given); a non-finite
-        pose is refused, one off the map or in a wall is moved to the nearest free cell."""
-        pose = np.asarray(pose, dtype=float).reshape(3)
-        if not np.all(np.isfinite(pose)):
-            self.log.warning(f"initial pose {pose.tolist()} is not finite: ignored")
+        """(Re-)initialise the cloud around a pose (``core.initial_pose`` checks it); False: refused."""
+        init = check_initial_pose(pose, covariance, self.map, self.params, self.log)
+        if init is None:
             return False
-        if self.map is not None and not self.map.is_free(pose[None, :2])[0]:
-            nearest = self.map.nearest_free(pose[:2])
-            self.log.warning(f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}) is not in free space: "
-                             f"moved to the nearest free cell ({nearest[0]:.2f}, {nearest[1]:.2f})")
-            pose = np.array([nearest[0], nearest[1], pose[2]])
-        cov = None
-        if covariance is not None and self.params.use_initialpose_covariance:
-            cov = np.asarray(covariance, dtype=float).reshape(3, 3)
-            if not usable_covariance(cov):
-                self.log.warning(f"initial pose covariance {np.diag(cov).tolist()} (diagonal) is not a usable spread "
-                                 "(non-finite, zero, or beyond 1e4): using initial_std_xy / initial_std_theta")
-                cov = None
-        p = self.params
         with self._lock:
-            self._pf.resize(p.num_particles)
+            self._pf.resize(self.params.num_particles)
             self._pf.kld_hold = False
-            self._pf.initialize_gaussian(pose, cov, (p.initial_std_xy, p.initial_std_xy, p.initial_std_theta))
+            self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
             self._after_init_locked(stamp)
         return True
 
@@ -234,160 +211,77 @@ class Localizer:
         self._recovery.restart()
         self._policy.force()
         self._queue.clear()
-        self._t_filter = self._t_update = self._timeline.usable(stamp) if not self._timeline.empty else stamp
+        t = self._timeline.usable(stamp) if not self._timeline.empty else stamp
+        self._step.restart(t)
         est = self._pf.estimate()
-        t = self._t_filter if self._t_filter is not None and math.isfinite(self._t_filter) else 0.0
+        t = t if t is not None and math.isfinite(t) else 0.0
         self._timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))
 
-    # ------------------------------------------------------------------ odometry
     def on_odometry(self, twist: TwistData) -> PoseEstimate | None:
         """Add an odometry message; returns the latest corrected estimate carried to its time t'_k."""
         self._inbox.append(twist)
         if not self._lock.acquire(blocking=False):  # a sensor update runs: carry the last pose by this twist
-            return self._carry_unlocked(twist)
+            self._carried = self._timeline.limits.carry(self._carried, twist)
+            return self._carried
         try:
             accepted = self._drain_locked()
-            pose = self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
             if not self.ready:
-                self.warn("odom-not-ready", self._not_ready_reason("odometry kept; no pose yet"), logging.INFO)
-            self._carried = pose
-            return pose
+                self.warn("odom-not-ready", waiting(self, "odometry kept; no pose yet"), logging.INFO)
+            self._carried = self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
+            return self._carried
         finally:
             self._lock.release()
 
-    def _carry_unlocked(self, twist: TwistData) -> PoseEstimate | None:
-        last, lim = self._carried, self._timeline.limits
-        t = twist.stamp + lim.time_offset
-        if last is None or not t > last.stamp or t - last.stamp > lim.max_gap:
-            return last
-        delta = integrate_twist(lim.speed_scale * twist.vx, lim.speed_scale * twist.vy,
-                                lim.yaw_rate_scale * twist.wz + lim.yaw_rate_bias, t - last.stamp)
-        self._carried = PoseEstimate(stamp=t, pose=compose(last.pose, delta), covariance=last.covariance)
-        return self._carried
-
     def _drain_locked(self) -> bool:
-        """Odometry from the inbox into the timeline, then every scan that may now be used; returns
-        whether the last odometry message was accepted."""
+        """Odometry from the inbox into the timeline, then every scan it covers; the last one accepted?"""
         accepted = False
         while self._inbox:
             verdict = self._timeline.add(self._inbox.popleft())
             accepted = verdict.accepted
             if not accepted:
                 self.warn(verdict.key, verdict.problem)
-            elif verdict.restart is not None and self._t_filter is not None:  # a new history: the filter's
-                self._t_filter = self._t_update = verdict.restart  # times move to its start
-        anchor, latest = self._timeline.anchor, self._timeline.latest
-        if anchor is not None and latest is not None and anchor.stamp < latest - 0.5 * self.params.odom_max_gap:
-            self._timeline.set_anchor(self._timeline.pose_at(latest))  # keep the history short
+            elif verdict.restart is not None and self._step.t_filter is not None:  # a new history: the
+                self._step.restart(verdict.restart)  # filter's times move to its start
+        self._timeline.rebase_anchor()  # keep the history short
         for item in self._queue.release(None if self._timeline.empty else self._timeline.latest):
             if item.late:
-                self.warn("scan-late", f"no odometry reached a scan's time after {item.waited:.2f} s (scan_max_wait "
-                          f"{self.params.scan_max_wait} s): the last twist is extrapolated. Odometry is late or "
-                          "stopped: check odom_time_offset, or raise scan_max_wait")
+                self.warn("scan-late", item.warning(self.params.scan_max_wait))
             self._update_locked(item.scan, item.time)
         return accepted
 
-    # ------------------------------------------------------------------ scans
     def on_scan(self, scan: ScanData) -> PoseEstimate | None:
         """Queue a scan until odometry reaches its time, and use every scan that may be used now;
         returns the newest sensor-corrected estimate made by this call (None: none)."""
         key, problem = scan_problem(scan)
         if key:
-            self.warn(key, problem)
-            return None
+            return self.warn(key, problem)
         with self._lock:
             if not self.ready:
-                self.warn("scan-not-ready", self._not_ready_reason("scan ignored"), logging.INFO)
-                return None
+                return self.warn("scan-not-ready", waiting(self, "scan ignored"), logging.INFO)
             latest = self._timeline.latest
             t_s = scan_time(scan) if self.params.align_odometry or latest is None else latest
             if latest is not None and t_s < latest - self.params.odom_max_gap:
-                self.warn("scan-stale", f"scan stamped {latest - t_s:.2f} s before the latest odometry ignored "
-                          "(a clock jump or a stale message; odometry going back resets the reference)")
-                return None
+                return self.warn("scan-stale", f"scan stamped {latest - t_s:.2f} s before the latest odometry "
+                                 "ignored (a clock jump or a stale message)")
             before = len(self._corrections)
             self._queue.push(t_s, scan)
             self._drain_locked()
             return self._corrections[-1] if len(self._corrections) > before else None
 
-    def _move_particles_locked(self, t: float) -> None:
-        """Particles to time t through the odometry (noise per piece; exactly back if t is older)."""
-        t_from = self._timeline.usable(self._t_filter)
-        if t_from is None or self._timeline.empty:
-            self._t_filter = t
-            return
-        if t < t_from:
-            self._pf.shift(inverse(self._timeline.motion(t, t_from)))
-        dts, twists = self._timeline.segments(t_from, t)
-        for delta in integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts):
-            self._pf.motion_update(delta)
-        self._t_filter = t
+    def flush(self) -> None:
+        """Use every waiting scan now, the last twist extrapolated (the end of a recording)."""
+        with self._lock:
+            for item in self._queue.release(None):
+                self._update_locked(item.scan, item.time)
 
     def _update_locked(self, scan: ScanData, t_s: float) -> None:
-        """One scan at its time t_s: motion to t_s, and a sensor update when the policy says so."""
-        p = self.params
-        self._move_particles_locked(t_s)
-        t_last = self._timeline.usable(self._t_update)
-        distance, angle = self._timeline.travel(t_s if t_last is None else t_last, t_s)
-        vx, vy, wz = self._timeline.twist_at(t_s)
-        if self._policy.reason(distance, angle, math.hypot(vx, vy), wz) is None:
-            return
-        rmin, rmax = scan.range_min, scan.range_max
-        if not (math.isfinite(rmin) and math.isfinite(rmax) and 0 <= rmin < rmax):
-            self.warn("scan-limits", f"scan range limits [{rmin}, {rmax}] are unusable: using [0, "
-                      f"{self._pf.sensor_model.max_range:.2f}] m")
-            rmin, rmax = 0.0, self._pf.sensor_model.max_range
-        beams = downsample_scan(scan, p.num_beams_per_particle, rmin, rmax)
-        if not np.isfinite(beams.ranges).any():
-            self.warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
-            return
-        self._seeder.seed(self._pf, self.map, beams.ranges, beams.angles)
-        result = self._pf.sensor_update(beams.ranges, beams.angles, self._deskew(scan, t_s, beams.indices),
-                                        range_max=rmax)
-        if not result.ok:
-            self._impossible += 1
-            if self._impossible < p.max_impossible_scans:
-                self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
-                return
-            self.log.warning(f"{self._impossible} scans in a row gave every particle likelihood 0 (all off the map "
-                             "or in walls): re-spreading particles over the free space")
-            self._impossible, self.recoveries = 0, self.recoveries + 1
-            self._spread_locked(t_s)
-            return
-        self._impossible, self._t_update = 0, t_s
-        self._policy.updated(math.hypot(vx, vy), wz)
-        est = self._pf.estimate()
-        verdict = self._recovery.judge(est.pose, est.covariance, beams.ranges, beams.angles, rmin, rmax,
-                                       self.global_mode)
-        if verdict.converged:
-            self._pf.kld_hold = False
-            if self._pf.kld is None:
-                self._pf.resize(p.num_particles)
-            self.log.info(f"global localization converged at ({est.pose[0]:.2f}, {est.pose[1]:.2f}, "
-                          f"{est.pose[2]:.2f}): {self._pf.num_particles} particles")
-        if verdict.lost:
-            self.log.warning(verdict.message)
+        """One scan at its time: the scan step; a re-spread or a corrected estimate (the new anchor)."""
+        out = self._step.run(scan, t_s, self.map, self.global_mode)
+        if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
-            est = self._pf.estimate()
-        corrected = PoseEstimate(stamp=t_s, pose=est.pose, covariance=est.covariance)
-        self._timeline.set_anchor(corrected)
-        self._corrections.append(corrected)
-
-    def _deskew(self, scan: ScanData, t_s: float, idx):
-        """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each beam's own time, Δ_b the
-        robot's arc under the twist at t_s, L the laser pose; None without sweep timing."""
-        sweep = sweep_increment(scan)
-        if not (sweep > 0 and self.params.deskew and self._pf.sensor_model.supports_deskew):
-            return None
-        vx, vy, wz = self._timeline.twist_at(t_s)
-        robot = integrate_twists(vx, vy, wz, scan.stamp + idx * sweep - t_s)
-        laser = np.asarray(self._pf.sensor_model.laser_offset, dtype=float)
-        return compose(inverse(laser), compose(robot, laser))
-
-    def _not_ready_reason(self, what: str) -> str:
-        if self.map_pending:
-            return f"{what}: waiting for the sensor model to prepare the map (range table being built or loaded)"
-        if self.map is None:
-            return f"{what}: no map received yet"
-        return f"{what}: waiting for an initial pose (/initialpose) or global localization"
+        if out.estimate is not None:
+            est = out.estimate if not out.respread else self._pf.estimate()
+            corrected = PoseEstimate(stamp=t_s, pose=est.pose, covariance=est.covariance)
+            self._timeline.set_anchor(corrected)
+            self._corrections.append(corrected)

@@ -88,6 +88,10 @@ class Released:
     late: bool  # released before odometry reached its time (extrapolated)
     waited: float  # s on the scan clock between its time and the newest input when released
 
+    def warning(self, max_wait: float) -> str:
+        return (f"no odometry reached a scan's time after {self.waited:.2f} s (scan_max_wait {max_wait} s): the last "
+                "twist is extrapolated. Odometry is late or stopped: check odom_time_offset, or raise scan_max_wait")
+
 
 class ScanQueue:
     def __init__(self, max_wait: float = 0.5, size: int = 20):

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.geometry import compose
+from localization.core.geometry import compose, integrate_twist
 from localization.core.odometry import OdometryBuffer, TwistData
 
 
@@ -57,6 +57,17 @@ class OdometryLimits:
         return cls(time_offset=p.odom_time_offset, speed_scale=p.odom_speed_scale,
                    yaw_rate_scale=p.odom_yaw_rate_scale, yaw_rate_bias=p.odom_yaw_rate_bias, max_gap=p.odom_max_gap,
                    max_speed=p.odom_max_speed, max_yaw_rate=p.odom_max_yaw_rate, extrapolation=p.scan_max_wait)
+
+
+    def carry(self, last: PoseEstimate | None, twist: TwistData) -> PoseEstimate | None:
+        """``last`` carried on by one (corrected) twist to its time, without the history: the quick
+        answer while the timeline is busy (a sensor update holds the localizer's lock)."""
+        t = twist.stamp + self.time_offset
+        if last is None or not t > last.stamp or t - last.stamp > self.max_gap:
+            return last
+        delta = integrate_twist(self.speed_scale * twist.vx, self.speed_scale * twist.vy,
+                                self.yaw_rate_scale * twist.wz + self.yaw_rate_bias, t - last.stamp)
+        return PoseEstimate(stamp=t, pose=compose(last.pose, delta), covariance=last.covariance)
 
 
 @dataclass(frozen=True)
@@ -150,6 +161,13 @@ class OdometryTimeline:
     def set_anchor(self, estimate: PoseEstimate | None) -> None:
         self.anchor = estimate
         self.trim()
+
+    def rebase_anchor(self) -> None:
+        """An anchor older than half ``max_gap`` moves to the newest odometry (the same pose, carried):
+        the history it needs stays short however long no scan corrects it."""
+        a, latest = self.anchor, self.latest
+        if a is not None and latest is not None and a.stamp < latest - 0.5 * self.limits.max_gap:
+            self.set_anchor(self.pose_at(latest))
 
     def pose_at(self, t: float) -> PoseEstimate | None:
         """The anchor carried through the odometry to time t (scan clock), backwards too."""

@@ -1,0 +1,125 @@
+"""The scan step: bring the particles to a scan's time and, when the update policy says so, update them.
+
+For a scan at time t_s (scan clock) with the particles at t_filter:
+
+    motion     particles ← particles ⊕ (Δ piece + ε) for each constant-twist piece of (t_filter, t_s]
+               (``MotionModel``; exactly back, without noise, when t_s < t_filter)
+    policy     s, φ = path length and rotation since the last update (the odometry over (t_update, t_s]);
+               ``UpdatePolicy.reason`` decides
+    beams      ~num_beams_per_particle beams; no return (inf) = a max-range reading at the scan's range_max
+    seed       a pending global spread is re-seeded from these beams (``GlobalSeeder``)
+    deskew     beam b cast from the laser pose at its own time t_b = stamp + i_b · time_increment:
+               δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
+    update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``)
+    judge      converged / tracking / lost (``RecoveryPolicy``)
+
+Every particle at likelihood 0 for ``max_impossible_scans`` scans in a row asks for a re-spread, as a
+lost filter does (``StepOutcome.respread``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
+from localization.core.geometry import compose, integrate_twists, inverse
+from localization.core.global_seeder import GlobalSeeder
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.policies import UpdatePolicy
+from localization.core.recovery import RecoveryPolicy
+from localization.core.scan import ScanData, downsample_scan, sweep_increment
+from localization.core.timeline import OdometryTimeline
+
+
+@dataclass(frozen=True)
+class StepOutcome:
+    estimate: Estimate | None = None  # after a sensor update (None: no update)
+    respread: bool = False  # the filter is lost (or impossible): spread the particles globally
+
+
+def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
+    """The downsampled beams of a scan and its range limits (None, and a warning, when no beam is valid);
+    unusable limits fall back to [0, the sensor model's max range]."""
+    rmin, rmax = scan.range_min, scan.range_max
+    if not (math.isfinite(rmin) and math.isfinite(rmax) and 0 <= rmin < rmax):
+        warn("scan-limits", f"scan range limits [{rmin}, {rmax}] are unusable: using [0, {model_max_range:.2f}] m")
+        rmin, rmax = 0.0, model_max_range
+    beams = downsample_scan(scan, num_beams, rmin, rmax)
+    if not np.isfinite(beams.ranges).any():
+        warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
+        return None
+    return beams, rmin, rmax
+
+
+def deskew_offsets(scan: ScanData, t_s: float, idx, twist, laser_offset):
+    """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each used beam's own time
+    t_b = stamp + i_b · time_increment, Δ_b the robot's arc under ``twist`` (the odometry's at t_s), L
+    the laser pose; None without sweep timing."""
+    sweep = sweep_increment(scan)
+    if not sweep > 0:
+        return None
+    robot = integrate_twists(twist[0], twist[1], twist[2], scan.stamp + np.asarray(idx) * sweep - t_s)
+    laser = np.asarray(laser_offset, dtype=float)
+    return compose(inverse(laser), compose(robot, laser))
+
+
+class ScanStep:
+    def __init__(self, pf: MonteCarloLocalizer, timeline: OdometryTimeline, policy: UpdatePolicy,
+                 seeder: GlobalSeeder, recovery: RecoveryPolicy, params, warn):
+        self.pf, self.timeline, self.policy, self.seeder, self.recovery = pf, timeline, policy, seeder, recovery
+        self.params, self.warn = params, warn
+        self.t_filter: float | None = None  # s, scan clock: the time the particles describe
+        self.t_update: float | None = None  # s, scan clock: the last sensor update
+        self.impossible = 0  # scans in a row that gave every particle likelihood 0
+
+    def restart(self, t: float | None) -> None:
+        """The particles were (re-)initialised at time t."""
+        self.t_filter = self.t_update = t
+        self.impossible = 0
+
+    def move_to(self, t: float) -> None:
+        """Particles to time t through the odometry (noise per piece; exactly back if t is older)."""
+        t_from = self.timeline.usable(self.t_filter)
+        if t_from is not None and not self.timeline.empty:
+            if t < t_from:
+                self.pf.shift(inverse(self.timeline.motion(t, t_from)))
+            dts, twists = self.timeline.segments(t_from, t)
+            for delta in integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts):
+                self.pf.motion_update(delta)
+        self.t_filter = t
+
+    def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool) -> StepOutcome:
+        p, model = self.params, self.pf.sensor_model
+        self.move_to(t_s)
+        t_last = self.timeline.usable(self.t_update)
+        distance, angle = self.timeline.travel(t_s if t_last is None else t_last, t_s)
+        twist = self.timeline.twist_at(t_s)
+        speed, yaw_rate = math.hypot(twist[0], twist[1]), twist[2]
+        if self.policy.reason(distance, angle, speed, yaw_rate) is None:
+            return StepOutcome()
+        usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, self.warn)
+        if usable is None:
+            return StepOutcome()
+        beams, rmin, rmax = usable
+        self.seeder.seed(self.pf, occupancy_map, beams.ranges, beams.angles)
+        offsets = deskew_offsets(scan, t_s, beams.indices, twist, model.laser_offset) if (
+            p.deskew and model.supports_deskew) else None
+        if not self.pf.sensor_update(beams.ranges, beams.angles, offsets, range_max=rmax).ok:
+            self.impossible += 1
+            if self.impossible < p.max_impossible_scans:
+                self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
+                return StepOutcome()
+            self.warn("scan-impossible", f"{self.impossible} scans in a row gave every particle likelihood 0 (all "
+                      "off the map or in walls): re-spreading particles over the free space")
+            return StepOutcome(respread=True)
+        self.impossible, self.t_update = 0, t_s
+        self.policy.updated(speed, yaw_rate)
+        est = self.pf.estimate()
+        verdict = self.recovery.judge(est.pose, est.covariance, beams.ranges, beams.angles, rmin, rmax, global_mode)
+        if verdict.converged:
+            self.seeder.converged(self.pf, est.pose)
+        if verdict.lost:
+            self.warn("lost", verdict.message)
+        return StepOutcome(estimate=est, respread=verdict.lost)
