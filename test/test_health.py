@@ -17,6 +17,7 @@ from localization.core.parameters import Parameters
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
 from localization.eval.datasets import trial_config
+from localization.eval.feed import Feeder
 from localization.sensor_model import SensorModel
 from localization.sim import simulate
 
@@ -176,3 +177,31 @@ def test_stationary_car_does_not_drift_and_tightens_once():
     assert np.array_equal(loc.particles(), particles1)  # no motion noise, no resampling jitter
     est = loc.estimate
     assert np.allclose(est.pose, mean1) and cloud_spread(est.covariance) <= spread1 + 1e-12
+
+
+# ------------------------------------------------------------------------------- map disagrees: hold, never jump
+def test_scans_the_map_cannot_explain_hold_the_pose_on_odometry_without_a_jump(caplog):
+    """Clutter the map does not show (every beam a random range, scan after scan): the filter is judged
+    lost, says the scans disagree with the map, keeps its pose on odometry, and no challenger wins
+    (nowhere fits clearly and lastingly better): no jump between consecutive estimates."""
+    m = corridor_map()
+    loc = Localizer(Parameters(num_particles=500, random_seed=4, ray_caster="distance_transform",
+                               health_lost_updates=5, recovery_search_period=0.5, recovery_particles=300),
+                    logging.getLogger("test.hold"))
+    loc.set_map(m)
+    loc.set_initial_pose([3.0, 1.5, 0.0], np.diag([1e-4, 1e-4, 1e-4]))
+    feeder = Feeder(loc)
+    rng = np.random.default_rng(0)
+    with caplog.at_level(logging.WARNING, logger="test.hold"):
+        for k in range(400):  # 8 s at 0.25 m/s
+            t = 0.02 * k
+            feeder.odometry(TwistData(t, 0.25, 0.0, 0.0))
+            if k % 2 == 1:
+                feeder.scan(ScanData(t - 0.01, rng.uniform(0.3, 3.0, 181), -1.57, 1.57, 3.14 / 180, 0.02, 10.0))
+    assert loc.status == "scans disagree with the map" and "localization lost" in caplog.text
+    assert loc.recoveries == 0  # no switch
+    t, poses = feeder.log.estimates()
+    steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert steps.max() < 0.05  # never a jump: 0.25 m/s × 20 ms = 5 mm per message
+    assert poses[-1, 0] == pytest.approx(3.0 + 0.25 * t[-1], abs=0.3)  # held on odometry
+    assert poses[-1, 1] == pytest.approx(1.5, abs=0.3)

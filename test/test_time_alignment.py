@@ -20,6 +20,7 @@ from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
+from localization.core.scan_step import deskew_offsets
 from localization.core.sensors.beam import BeamModel
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder, recording_events
@@ -243,21 +244,19 @@ def test_deskewed_ranges_match_exact_casting_from_each_beams_pose(stata):
     assert np.median(dsk) < 0.5 * np.median(rig)
 
 
-def test_swept_scan_gets_offsets_only_with_deskew_on():
+def test_swept_scan_gets_offsets_only_with_sweep_timing():
     loc = _corridor_localizer(num_beams_per_particle=101)
     for k in range(6):
         loc.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.4))
     scan = _scan(1.10, time_increment=1e-4)
     t_s = loc.scan_time(scan)
-    offsets = loc._deskew(scan, t_s, np.arange(101))
+    twist = loc._timeline.twist_at(1.09)  # the twist holding at the scan's time
+    offsets = deskew_offsets(scan, t_s, np.arange(101), twist, loc.laser_offset)
     assert offsets.shape == (101, 3)
     # the first beam 5 ms before the middle, the last 5 ms after: ∓ 1 cm at 2 m/s
     assert offsets[0, 0] == pytest.approx(-0.01, abs=1e-3) and offsets[-1, 0] == pytest.approx(0.01, abs=1e-3)
     assert offsets[50] == pytest.approx(np.zeros(3), abs=1e-12)
-    assert loc._deskew(_scan(1.10), t_s, np.arange(101)) is None  # no sweep timing
-    off = _corridor_localizer(deskew=False)
-    off.on_odometry(TwistData(1.0, 2.0, 0.0, 0.0))
-    assert off._deskew(scan, t_s, np.arange(101)) is None
+    assert deskew_offsets(_scan(1.10), t_s, np.arange(101), twist, loc.laser_offset) is None  # no sweep timing
     assert math.isfinite(t_s) and replace(scan, time_increment=1.0).time_increment == 1.0
     assert loc.scan_time(replace(scan, time_increment=1.0)) == scan.stamp  # not a lidar sweep: ignored
 

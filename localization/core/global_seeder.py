@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 from localization.core.filter.global_init import ScanSeedParams, seed_from_scan
 from localization.core.filter.mcl import MonteCarloLocalizer
@@ -54,3 +55,13 @@ class GlobalSeeder:
             pf.resize(self.params.num_particles)
         self.log.info(f"global localization converged at ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f}): "
                       f"{pf.num_particles} particles")
+
+    def challenger(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles) -> MonteCarloLocalizer:
+        """A second, small cloud of recovery_particles drawn where this scan fits the map (same models)."""
+        params = replace(ScanSeedParams.from_parameters(self.params), global_seed_uniform=0.0)
+        seeds = seed_from_scan(occupancy_map, pf.sensor_model, ranges, angles, self.params.recovery_particles,
+                               pf.rng, params)
+        cloud = MonteCarloLocalizer(pf.motion_model, pf.sensor_model, len(seeds.poses), pf.resample_ess_fraction,
+                                    pf.roughening, pf.rng)
+        cloud.set_particles(seeds.poses)
+        return cloud

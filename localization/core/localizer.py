@@ -110,6 +110,7 @@ class Localizer:
     has_map = property(lambda self: self.map is not None)
     ready = property(lambda self: self.map is not None and self._pf.initialized)
     health = property(lambda self: self._recovery.health, doc="scan-map agreement, fast average (NaN: none)")
+    status = property(lambda self: self._recovery.status, doc="tracking, or: scans disagree with the map")
     num_particles = property(lambda self: self._pf.num_particles)
     global_mode = property(lambda self: self._pf.kld_hold, doc="a global spread, not yet converged")
     laser_offset = property(lambda self: np.array(self._pf.sensor_model.laser_offset, dtype=float))
@@ -280,8 +281,9 @@ class Localizer:
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
+        self.recoveries += out.switched is not None
         if out.estimate is not None:
-            est = out.estimate if not out.respread else self._pf.estimate()
+            est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
             corrected = PoseEstimate(stamp=t_s, pose=est.pose, covariance=est.covariance)
             self._timeline.set_anchor(corrected)
             self._corrections.append(corrected)

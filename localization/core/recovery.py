@@ -1,17 +1,28 @@
-"""Recovery policy: after each sensor update, is the filter converged, tracking, or lost?
+"""Recovery policy: tracking, or holding while the scans disagree with the map — never a jump.
 
 After every sensor update the estimate x̂ is scored against the (downsampled) scan: the scan–map
-agreement a ∈ [0, 1] (``health.AgreementScorer``: the share of valid beams ending within 0.10 m of
-an occupied cell). ``health.HealthMonitor`` averages it (fast and slow) and calls the filter lost
-when the fast average stays low. The policy then decides:
+agreement a ∈ [0, 1] (``health.AgreementScorer``: the share of valid beams ending within 0.10 m of an
+occupied cell). ``health.HealthMonitor`` averages it (fast and slow) and calls the filter lost when
+the fast average stays low for ``health_lost_updates`` updates. Then, with ``recovery`` on:
 
-    spread cloud (global mode)   converged once the position std < global_converged_std:
-                                 the cloud shrinks back to num_particles, the monitor restarts
-    lost and recovery on         re-spread globally (the global seeder proposes the poses)
-    otherwise                    keep tracking
+    hold       the cloud is kept and moves on odometry only (a scan the map cannot explain — moved
+               furniture, a changed building — must not drag it); each scan still scores the estimate,
+               and the fast average back above the lost floor resumes tracking
+    search     every ``recovery_search_period`` s (scan clock) without a challenger, the global seeder
+               proposes poses that fit the current scan (``filter.global_init.seed_from_scan``) and a
+               small second cloud of ``recovery_particles`` — the challenger — starts there; it moves
+               and is updated with the same odometry and scans as the main cloud
+    switch     only when the converged challenger's agreement a_c beats the main estimate's a_e and is
+               what this map and sensor normally score: a_c ≥ a_e + recovery_margin and
+               a_c ≥ max(health_lost_floor, a_normal − recovery_margin), a_normal the slow average when
+               the filter was judged lost, for ``recovery_confirm_updates`` updates in a row (a near
+               miss re-locks the same way, a short move): the main cloud becomes the challenger's. A
+               challenger that has not won within ``recovery_challenger_timeout`` s is dropped (the next
+               search may try again)
+    resume     the fast average back above the lost floor: tracking again
 
-``judge`` returns the decision; the localizer carries it out. The monitor only judges a converged
-cloud (the mean of many hypotheses says nothing about any of them).
+A global spread (start, service) is judged only once converged (cloud std < global_converged_std):
+before that, its mean says nothing about any of its hypotheses. ``status`` is what the node reports.
 """
 from __future__ import annotations
 
@@ -23,11 +34,13 @@ import numpy as np
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
 
+TRACKING, HOLDING = "tracking", "scans disagree with the map"
+
 
 @dataclass(frozen=True)
 class Judgement:
     converged: bool = False  # a global spread has just converged
-    lost: bool = False  # the filter is lost and recovery should re-spread it
+    lost: bool = False  # the filter has just been judged lost (holding starts)
     agreement: float = math.nan  # of this update's estimate (NaN: not scored)
     message: str = ""  # what to log (empty: nothing)
 
@@ -37,14 +50,20 @@ class RecoveryPolicy:
         self.params = params
         self.monitor = HealthMonitor.from_params(params)
         self._scorer: AgreementScorer | None = None
+        self.holding = False  # lost: the scans disagree with the map around the estimate
+        self.challenger = None  # a MonteCarloLocalizer started where the scan fits, or None
+        self._challenger_since = -math.inf  # s, scan clock
+        self._last_search = -math.inf  # s, scan clock
+        self._wins = 0  # updates in a row the challenger explained the scan clearly better
+        self._normal = math.nan  # the slow average agreement when the filter was judged lost
 
-    @property
-    def health(self) -> float:
-        return self.monitor.health
+    health = property(lambda self: self.monitor.health)
+    status = property(lambda self: HOLDING if self.holding else TRACKING)
 
     def set_map(self, occupancy_map: OccupancyMap, laser_offset) -> None:
         self._scorer = AgreementScorer(occupancy_map, laser_offset, range_scale=self.params.lidar_scale_to_map_scale)
         self.monitor.reset()
+        self._stop_holding()
 
     def set_laser_offset(self, laser_offset) -> None:
         if self._scorer is not None:
@@ -53,9 +72,16 @@ class RecoveryPolicy:
     def restart(self) -> None:
         """After an initialisation: the fast average starts again, the long-term one is kept."""
         self.monitor.reset(keep_slow=True)
+        self._stop_holding()
 
-    def judge(self, pose, covariance, ranges, angles, range_min: float, range_max: float,
-              global_mode: bool) -> Judgement:
+    def _stop_holding(self) -> None:
+        self.holding, self.challenger, self._wins = False, None, 0
+
+    def score(self, pose, beams) -> float:
+        """Scan–map agreement of a pose; ``beams`` = (ranges, angles, range_min, range_max)."""
+        return self._scorer.score(pose, *beams)
+
+    def judge(self, pose, covariance, beams, global_mode: bool) -> Judgement:
         p = self.params
         converged = False
         if global_mode:
@@ -63,11 +89,39 @@ class RecoveryPolicy:
                 return Judgement()  # still spread
             converged = True
             self.restart()
-        agreement = self._scorer.score(pose, ranges, angles, range_min, range_max)
-        lost = self.monitor.update(agreement) and p.recovery
+        agreement = self.score(pose, beams)
+        lost = self.monitor.update(agreement) and p.recovery and not self.holding
         message = ""
         if lost:
             m = self.monitor
+            self.holding, self._normal = True, m.slow
             message = (f"localization lost: scan-map agreement {m.fast:.2f} (long-term {m.slow:.2f}) for "
-                       f"{m.low_count} updates; re-spreading the particles over the free space (recovery)")
+                       f"{m.low_count} updates: holding the pose on odometry, updates only where they agree "
+                       "with the map, searching the map for a better place")
+        elif self.holding and self.monitor.low_count == 0:
+            self._stop_holding()
+            message = f"scans agree with the map again (agreement {self.monitor.fast:.2f}): tracking"
         return Judgement(converged=converged, lost=lost, agreement=agreement, message=message)
+
+    def search_due(self, t: float) -> bool:
+        """Start a challenger now? (holding, none running, the last search long enough ago)"""
+        return self.holding and self.challenger is None and t - self._last_search >= self.params.recovery_search_period
+
+    def start(self, challenger, t: float) -> None:
+        self.challenger, self._challenger_since, self._last_search, self._wins = challenger, t, t, 0
+
+    def challenge(self, main_agreement: float, beams, t: float) -> str:
+        """After the challenger's own update: "switch", "drop" or "" (keep watching)."""
+        p, c = self.params, self.challenger
+        est = c.estimate()
+        a_c = self.score(est.pose, beams) if cloud_spread(est.covariance) < p.global_converged_std else math.nan
+        normal = self._normal - p.recovery_margin if math.isfinite(self._normal) else 0.0
+        better = (math.isfinite(a_c) and a_c >= max(p.health_lost_floor, normal)
+                  and a_c >= (main_agreement if math.isfinite(main_agreement) else 0.0) + p.recovery_margin)
+        self._wins = self._wins + 1 if better else 0
+        if self._wins >= p.recovery_confirm_updates:
+            return "switch"
+        if t - self._challenger_since > p.recovery_challenger_timeout:
+            self.challenger, self._wins = None, 0
+            return "drop"
+        return ""

@@ -11,10 +11,12 @@ For a scan at time t_s (scan clock) with the particles at t_filter:
     deskew     beam b cast from the laser pose at its own time t_b = stamp + i_b · time_increment:
                δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
     update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``)
-    judge      converged / tracking / lost (``RecoveryPolicy``)
+    judge      converged / tracking / holding, and a challenger's search, update and switch
+               (``RecoveryPolicy``); while holding, the scan updates only the challenger: the cloud
+               moves on odometry
 
-Every particle at likelihood 0 for ``max_impossible_scans`` scans in a row asks for a re-spread, as a
-lost filter does (``StepOutcome.respread``).
+Every particle at likelihood 0 for ``max_impossible_scans`` scans in a row asks for a re-spread
+(``StepOutcome.respread``): no pose of the cloud is possible at all.
 """
 from __future__ import annotations
 
@@ -36,7 +38,8 @@ from localization.core.timeline import OdometryTimeline
 @dataclass(frozen=True)
 class StepOutcome:
     estimate: Estimate | None = None  # after a sensor update (None: no update)
-    respread: bool = False  # the filter is lost (or impossible): spread the particles globally
+    respread: bool = False  # every particle impossible, scan after scan: spread the particles globally
+    switched: Estimate | None = None  # a challenger won: the cloud moved there (its estimate)
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
@@ -80,18 +83,22 @@ class ScanStep:
         self.impossible = 0
 
     def move_to(self, t: float) -> None:
-        """Particles to time t through the odometry (noise per piece; exactly back if t is older)."""
+        """Particles (and a challenger's) to time t through the odometry (noise per piece; exactly
+        back if t is older)."""
         t_from = self.timeline.usable(self.t_filter)
         if t_from is not None and not self.timeline.empty:
+            clouds = [c for c in (self.pf, self.recovery.challenger) if c is not None]
             if t < t_from:
-                self.pf.shift(inverse(self.timeline.motion(t, t_from)))
+                for cloud in clouds:
+                    cloud.shift(inverse(self.timeline.motion(t, t_from)))
             dts, twists = self.timeline.segments(t_from, t)
             for delta in integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts):
-                self.pf.motion_update(delta)
+                for cloud in clouds:
+                    cloud.motion_update(delta)
         self.t_filter = t
 
     def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool) -> StepOutcome:
-        p, model = self.params, self.pf.sensor_model
+        p, model, pf, recovery = self.params, self.pf.sensor_model, self.pf, self.recovery
         self.move_to(t_s)
         t_last = self.timeline.usable(self.t_update)
         distance, angle = self.timeline.travel(t_s if t_last is None else t_last, t_s)
@@ -102,11 +109,12 @@ class ScanStep:
         usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, self.warn)
         if usable is None:
             return StepOutcome()
-        beams, rmin, rmax = usable
-        self.seeder.seed(self.pf, occupancy_map, beams.ranges, beams.angles)
-        offsets = deskew_offsets(scan, t_s, beams.indices, twist, model.laser_offset) if (
+        b, rmin, rmax = usable
+        beams = (b.ranges, b.angles, rmin, rmax)
+        self.seeder.seed(pf, occupancy_map, b.ranges, b.angles)
+        offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset) if (
             p.deskew and model.supports_deskew) else None
-        if not self.pf.sensor_update(beams.ranges, beams.angles, offsets, range_max=rmax).ok:
+        if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
             self.impossible += 1
             if self.impossible < p.max_impossible_scans:
                 self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
@@ -116,10 +124,30 @@ class ScanStep:
             return StepOutcome(respread=True)
         self.impossible, self.t_update = 0, t_s
         self.policy.updated(speed, yaw_rate)
-        est = self.pf.estimate()
-        verdict = self.recovery.judge(est.pose, est.covariance, beams.ranges, beams.angles, rmin, rmax, global_mode)
+        est = pf.estimate()  # (holding: the cloud moved on odometry only)
+        verdict = recovery.judge(est.pose, est.covariance, beams, global_mode)
         if verdict.converged:
-            self.seeder.converged(self.pf, est.pose)
-        if verdict.lost:
-            self.warn("lost", verdict.message)
-        return StepOutcome(estimate=est, respread=verdict.lost)
+            self.seeder.converged(pf, est.pose)
+        if verdict.message:
+            self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
+        return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
+                                                                  verdict.agreement))
+
+    def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float):
+        """While holding: search for, update and judge a challenger; its estimate when it wins."""
+        recovery = self.recovery
+        if recovery.search_due(t_s):
+            recovery.start(self.seeder.challenger(self.pf, occupancy_map, b.ranges, b.angles), t_s)
+            return None  # its first update is the next scan's
+        if recovery.challenger is None:
+            return None
+        recovery.challenger.sensor_update(b.ranges, b.angles, offsets, range_max=beams[3])
+        verdict = recovery.challenge(main_agreement, beams, t_s)
+        if verdict != "switch":
+            return None
+        won, est = recovery.challenger, recovery.challenger.estimate()
+        self.pf.set_particles(won.particles)
+        recovery.restart()
+        self.warn("recovery-switch", f"recovery: the scans fit ({est.pose[0]:.2f}, {est.pose[1]:.2f}) clearly better "
+                  f"for {self.params.recovery_confirm_updates} updates in a row: the cloud moves there")
+        return est
