@@ -112,3 +112,24 @@ def test_global_localization_in_the_long_corridor_within_seconds():
     assert run.recoveries == 0
     laser = compose(run.est_poses[-1], loc.laser_offset)
     assert stata.is_free(laser[None, :2])[0]
+
+
+def test_the_lattice_is_scored_with_the_scans_range_max():
+    """seed_from_scan scores as a sensor update does: z_max from the scan's range_max (laser_max_range <= 0)."""
+    from localization.core.sensors.likelihood_field import LikelihoodFieldModel
+    m = room_map()
+    model = LikelihoodFieldModel(laser_offset=(0.0, 0.0, 0.0), laser_max_range=-1.0, occupancy_map=m)
+    true = np.array([1.13, 1.71, 0.4])
+    angles = np.linspace(-2.356, 2.356, 100)
+    ranges = ExactRayCaster(m, 10.0).cast(true[None], angles)[0]
+    params = ScanSeedParams(global_seed_step=0.2, global_seed_headings=12, global_seed_beams=40,
+                            global_seed_candidates=20, global_seed_temperature=4.0, global_seed_uniform=0.2)
+    seeds = {r: seed_from_scan(m, model, ranges, angles, 100, np.random.default_rng(1), params, range_max=r)
+             for r in (1.5, 8.0)}
+    best = seeds[8.0].candidates[0]
+    z, a = subset_beams(ranges, angles, 40)
+    for r, res in seeds.items():
+        want = model.log_likelihood(res.candidates[:1], z, a, range_max=r)[0]
+        assert res.candidate_log_likelihood[0] == pytest.approx(want)
+    assert seeds[1.5].candidate_log_likelihood[0] != pytest.approx(seeds[8.0].candidate_log_likelihood[0])
+    assert np.hypot(*(best[:2] - true[:2])) <= 0.3

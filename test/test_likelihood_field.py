@@ -16,7 +16,7 @@ from localization.core.parameters import BY_NAME, Parameters
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
 from localization.core.sensors.beam import BeamModel
-from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
+from localization.core.sensors.likelihood_field import UNKNOWN_RANGE_MAX, LikelihoodFieldModel, LikelihoodFieldParams
 
 HAND = dict(lf_z_hit=0.5, lf_z_rand=0.5, lf_sigma_hit=0.2, laser_likelihood_max_dist=2.55, laser_max_range=5.0,
             squash_factor=2.0, laser_offset=(0.0, 0.0, 0.0))  # 2.55 m / 255: quanta of exactly 1 cm
@@ -52,6 +52,24 @@ def test_hand_computation_on_a_tiny_map(use_numba):
     assert got.shape == (1,)
     assert got[0] == pytest.approx(hand_log_weight(), abs=1e-9)
     assert model.evaluate(PARTICLE, RANGES, ANGLES)[0] == pytest.approx(math.exp(hand_log_weight()), rel=1e-9)
+
+
+@pytest.mark.parametrize("use_numba", [True, False])
+def test_z_max_is_the_scans_range_max_unless_laser_max_range_is_set(use_numba):
+    """laser_max_range <= 0: the scan's range_max is z_max (beams at or beyond it skipped, z_rand / z_max);
+    laser_max_range > 0 wins over the scan's; no range_max at all: UNKNOWN_RANGE_MAX."""
+    from_scan = LikelihoodFieldModel(**{**HAND, "laser_max_range": -1.0}, use_numba=use_numba,
+                                     occupancy_map=tiny_map())
+    assert from_scan.log_likelihood(PARTICLE, RANGES, ANGLES, range_max=5.0)[0] == pytest.approx(
+        hand_log_weight(), abs=1e-9)
+    assert from_scan.max_range == UNKNOWN_RANGE_MAX and from_scan.max_range_for(5.0) == 5.0
+    fixed = LikelihoodFieldModel(**HAND, use_numba=use_numba, occupancy_map=tiny_map())
+    assert fixed.log_likelihood(PARTICLE, RANGES, ANGLES, range_max=8.0)[0] == pytest.approx(
+        hand_log_weight(), abs=1e-9)
+    # with z_max 8 m the 6 m beam counts (its end point off the map: the cap) and z_rand / 8 changes every beam
+    wide = from_scan.log_likelihood(PARTICLE, RANGES, ANGLES, range_max=8.0)[0]
+    p8 = [0.5 * math.exp(-d * d / (2 * 0.2 ** 2)) + 0.5 / 8.0 for d in (0.0, 0.3, 2.55, 2.55)]
+    assert wide == pytest.approx(sum(math.log(v) for v in p8) / 2.0, abs=1e-9)
 
 
 def test_laser_offset_and_a_rotated_map_give_the_same_hand_value():
@@ -150,7 +168,10 @@ def test_params_defaults_come_from_the_table_and_build_filter_picks_the_model():
     model = pf.sensor_model
     assert isinstance(model, LikelihoodFieldModel)
     assert model.params.lf_sigma_hit == 0.3 and model.params.do_beamskip and model.params.squash_factor == 3.0
-    assert np.allclose(model.laser_offset, [0.2, 0.0, 0.0]) and model.max_range == Parameters().laser_max_range
+    assert Parameters().laser_max_range <= 0  # z_max from each scan's range_max, as nav2's -1
+    assert np.allclose(model.laser_offset, [0.2, 0.0, 0.0]) and model.max_range == UNKNOWN_RANGE_MAX
+    model.set_laser_offset((0.1, 0.02, 0.3))
+    assert np.allclose(model.laser_offset, [0.1, 0.02, 0.3]) and model.params.laser_offset_y == 0.02
     with pytest.raises(ValueError):
         LikelihoodFieldModel(lf_z_hit=0.0, lf_z_rand=0.0)
     with pytest.raises(RuntimeError):

@@ -36,16 +36,17 @@ def test_course_defaults_differ_from_the_node_on_purpose_and_only_there():
     # each entry is a real difference from the node's default, and names a real parameter
     for name, value in COURSE_DEFAULTS.items():
         assert name in BY_NAME and value != BY_NAME[name].default
-    assert SensorModel().sigma_hit == 8.0 and Parameters().sigma_hit == 4.0
+    assert SensorModel().sigma_hit == 0.4 and Parameters().sigma_hit == 0.2  # m: 8 and 4 cells of 0.05 m
+    assert SensorModel().sigma_hit / SensorModel().table_resolution == pytest.approx(8.0)  # the course's 8 cells
     assert MotionModel().floor_xy == COURSE_DEFAULTS["motion_floor_xy"]
-    assert default("sigma_hit") == 4.0 and default("sigma_hit", course=True) == 8.0
+    assert default("sigma_hit") == 0.2 and default("sigma_hit", course=True) == 0.4
 
 
 def test_build_filter_maps_every_parameter_by_name():
-    params = Parameters(sigma_hit=3.0, motion_floor_xy=0.011, laser_offset_y=0.05, squash_factor=3.5,
+    params = Parameters(sigma_hit=0.15, motion_floor_xy=0.011, laser_offset_y=0.05, squash_factor=3.5,
                         ray_caster="exact")
     pf = build_filter(params)
-    assert pf.sensor_model.sigma_hit == 3.0 and pf.sensor_model.squash_factor == 3.5
+    assert pf.sensor_model.sigma_hit == 0.15 and pf.sensor_model.squash_factor == 3.5
     assert np.allclose(pf.sensor_model.laser_offset, [params.laser_offset_x, 0.05, 0.0])
     assert pf.motion_model.floor_xy == 0.011 and pf.num_particles == params.num_particles
 
@@ -71,3 +72,19 @@ def test_limits_once_hidden_in_the_localizer_are_parameters():
         assert name in BY_NAME
     with pytest.raises(ParameterError):
         Parameters(odom_max_speed=-1.0)
+
+
+def test_deprecated_sigma_hit_cells_converts_with_one_warning(caplog, tmp_path):
+    """sigma_hit is in metres; the cell-valued sigma_hit_cells still works, times table_resolution, whatever
+    the order the values come in, with one warning; an old cell value given as sigma_hit is refused."""
+    with caplog.at_level("WARNING", logger="localization.parameters"):
+        p = Parameters(sigma_hit_cells=3, table_resolution=0.0504)
+    assert p.sigma_hit == pytest.approx(3 * 0.0504) and "sigma_hit_cells" not in p
+    assert sum("sigma_hit_cells is deprecated" in r.message for r in caplog.records) == 1
+    f = tmp_path / "old.yaml"
+    f.write_text("particle_filter:\n  ros__parameters:\n    sigma_hit_cells: 4.0\n")
+    assert Parameters.from_yaml(f).sigma_hit == pytest.approx(0.2)
+    with pytest.raises(ParameterError, match="sigma_hit=4.0 must be > 0"):
+        Parameters(sigma_hit=4.0)  # 4 m: an old value in cells
+    with pytest.raises(ParameterError, match="sigma_hit=-0.05"):
+        Parameters(sigma_hit_cells=-1.0)

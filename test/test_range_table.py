@@ -164,7 +164,7 @@ def test_non_finite_poses_see_zero_and_non_finite_angles_are_refused(tmp_path):
     with pytest.raises(ValueError):
         caster.cast(poses, [0.0, np.nan])
     sm = SensorModel(ray_caster="exact", table_width=41)
-    sm.set_map(m, ray_caster=caster)
+    sm.set_map(m, caster)
     log_w = sm.log_likelihood(poses, np.full(9, 1.0), angles)
     assert np.isneginf(log_w[:2]).all() and np.isfinite(log_w[2:]).all()
 
@@ -273,7 +273,7 @@ def test_numpy_fallback_of_the_fused_sums_matches(tmp_path):
     m = room_map()
     caster = LookupTableRayCaster.for_map(m, 3.0, 72, cache_dir=tmp_path)
     sm = SensorModel(ray_caster="exact", table_width=61, laser_offset=(0.1, 0.0, 0.0))
-    sm.set_map(m, ray_caster=caster)
+    sm.set_map(m, caster)
     rng = np.random.default_rng(4)
     particles = uniform_free_poses(m, 200, rng)
     angles = np.linspace(-2, 2, 30)

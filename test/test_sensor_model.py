@@ -46,9 +46,13 @@ def test_each_component_alone():
 
 def test_attributes_rebuild_table_with_new_width():
     sm = SensorModel()
-    sm.table_width, sm.sigma_hit = 51, 2.0
+    sm.table_width, sm.sigma_hit = 51, 0.1
+    assert sm.params.table_width == 51 and sm.params.sigma_hit == 0.1  # the course's attributes are the params
     assert sm.precompute_sensor_model().shape == (51, 51)
     assert np.allclose(sm.sensor_model_table.sum(axis=0), 1.0)
+    wide = sm.sensor_model_table[25, 25]
+    sm.sigma_hit = 0.05  # a write drops the tables: rebuilt on use, 1 cell wide now (was 2)
+    assert np.argmax(sm.sensor_model_table[:, 25]) == 25 and sm.sensor_model_table[25, 25] > 1.5 * wide
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +72,8 @@ def test_log_space_matches_plain_product(corridor_model):
     z = np.rint(np.clip(obs / sm.map.resolution, 0, 200))
     plain = np.prod(sm.sensor_model_table[z.astype(int)[None, :], d.astype(int)], axis=1) ** (1 / 2.2)
     assert np.allclose(w, plain, rtol=1e-9)
+    # a 30 m lidar: z_max is capped at the table's reach, the numbers of the table in map cells (0.05 m here)
+    assert np.array_equal(sm.evaluate(particles, obs, range_max=30.0), w)
     sm.squash_factor = 1.0
     plain1 = np.prod(sm.sensor_model_table[z.astype(int)[None, :], d.astype(int)], axis=1)
     assert np.allclose(sm.evaluate(particles, obs), plain1, rtol=1e-9)
@@ -116,3 +122,94 @@ def test_downsampling_with_invalid_ranges():
     sm = SensorModel()
     sm.set_map(corridor_map())
     assert np.all(sm.to_cells(np.array([np.inf, np.nan, 1e9])) == 200)
+
+
+# ------------------------------------------------------------------ z_max: the sensor's range, in metres
+LIDAR_5_6 = 5.6  # m: a short-range lidar (the UoB Pioneer bags' range_max)
+
+
+def long_corridor():
+    """25 m x 2 m (0.05 m cells): looking along it, the far wall is > 10 m away."""
+    return corridor_map(width_cells=500, height_cells=60, wall_rows=(10, 50))
+
+
+def hand_max_entry(sm, k: int) -> float:
+    """The table entry (z = k, d = k) of the module docstring, for z_max row k: a max-range reading where
+    the particle expects no wall within z_max."""
+    p = sm.params
+    sigma = p.sigma_hit / p.table_resolution
+    z = np.arange(k + 1.0)
+    g = np.exp(-0.5 * ((z - k) / sigma) ** 2)
+    short = 2.0 / k * (1.0 - z / k)
+    column = p.alpha_hit + p.alpha_short * short.sum() + p.alpha_max + p.alpha_rand * (k + 1) / k
+    return (p.alpha_hit * g[-1] / g.sum() + p.alpha_max + p.alpha_rand / k) / column
+
+
+def test_a_short_lidars_no_return_beams_are_max_range_readings_at_its_range_max():
+    m = long_corridor()
+    sm = SensorModel(ray_caster="exact", laser_offset=(0.0, 0.0, 0.0), occupancy_map=m)
+    assert sm.params.laser_max_range <= 0 and sm.table_range == pytest.approx(10.0)
+    k = sm.z_max_row(LIDAR_5_6)
+    assert k == 112 and sm.max_range_for(LIDAR_5_6) == LIDAR_5_6 and sm.max_range == pytest.approx(10.0)
+    angles = np.array([-0.02, 0.0, 0.02])
+    no_return = np.array([np.inf, np.nan, 7.0])  # no return, a bad value, beyond range_max: all "max range"
+    open_space = np.array([[2.0, 1.5, 0.0]])  # looking along the corridor: the far wall 23 m away
+    ll = sm.log_likelihood(open_space, no_return, angles, range_max=LIDAR_5_6)
+    want = 3 * np.log(hand_max_entry(sm, 112)) / sm.params.squash_factor
+    assert ll[0] == pytest.approx(want, rel=1e-12)  # p_max at 5.6 m, not a 10 m table entry
+    assert ll[0] != pytest.approx(3 * np.log(sm.sensor_model_table[200, 200]) / sm.params.squash_factor)
+    assert sm.log_likelihood_numpy(open_space, no_return, angles, range_max=LIDAR_5_6)[0] == pytest.approx(want)
+    # a particle that would see the end wall 3 m ahead, where the scan says no return, is less likely
+    wall_ahead = np.array([[21.95, 1.5, 0.0]])
+    assert ExactRayCaster(m, 10.0).cast(wall_ahead, angles)[0] == pytest.approx(3.0, abs=0.06)
+    both = sm.log_likelihood(np.vstack([open_space, wall_ahead]), no_return, angles, range_max=LIDAR_5_6)
+    assert both[1] < both[0] - 0.5
+    # expected ranges between 5.6 m and 10 m clip to z_max too: a wall 8 m ahead is "open space" for this lidar
+    eight = np.array([[16.95, 1.5, 0.0]])
+    assert sm.log_likelihood(eight, no_return, angles, range_max=LIDAR_5_6)[0] == pytest.approx(want)
+
+
+def test_z_max_resolution_rules():
+    sm = SensorModel(laser_offset=(0.0, 0.0, 0.0))
+    reach = sm.table_range
+    assert sm.max_range_for(None) == pytest.approx(reach)  # no scan: the table's reach
+    assert sm.max_range_for(30.0) == pytest.approx(reach)  # a 30 m lidar: capped at the table's reach
+    assert sm.max_range_for(float("nan")) == pytest.approx(reach) and sm.max_range_for(-1.0) == pytest.approx(reach)
+    fixed = SensorModel(laser_max_range=4.0)
+    assert fixed.max_range_for(5.6) == 4.0 and fixed.z_max_row(5.6) == 80  # the parameter wins over the scan
+    scaled = SensorModel(lidar_scale_to_map_scale=0.5)  # lidar metres -> map metres
+    assert scaled.max_range_for(30.0) == pytest.approx(2 * reach) and scaled.z_max_row(30.0) == 200
+    assert scaled.z_max_row(5.6) == 56
+    coarse = SensorModel(table_resolution=0.1, table_width=101)  # 10 m in 0.1 m table cells, whatever the map's
+    assert coarse.to_cells(np.array([1.0, 2.55, np.inf])).tolist() == [10, 26, 100]
+    assert coarse.sensor_model_table.shape == (101, 101) and coarse.z_max_row(5.6) == 56
+
+
+def test_the_table_is_in_metres_whatever_the_maps_resolution():
+    """The same corridor at 0.05 and 0.1 m/cell: the same log-likelihoods (table cells of 0.05 m)."""
+    fine = corridor_map(width_cells=200, height_cells=60, wall_rows=(10, 50), resolution=0.05)
+    coarse = corridor_map(width_cells=100, height_cells=30, wall_rows=(5, 25), resolution=0.1)
+    angles = np.linspace(-1.5, 1.5, 31)
+    pose = np.array([[4.02, 1.52, 0.1]])
+    models = [SensorModel(ray_caster="exact", laser_offset=(0.0, 0.0, 0.0), occupancy_map=m) for m in (fine, coarse)]
+    obs = ExactRayCaster(fine, 10.0).cast(pose, angles)[0]
+    lls = [sm.log_likelihood(pose + [[0.1, 0.0, 0.0]], obs, angles, range_max=LIDAR_5_6)[0] for sm in models]
+    assert models[0].table_range == models[1].table_range == pytest.approx(10.0)
+    assert lls[0] == pytest.approx(lls[1], rel=0.05)
+
+
+def test_fused_kernel_equals_numpy_with_a_short_z_max(tmp_path, monkeypatch):
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    m = long_corridor()
+    sm = SensorModel(ray_caster="lookup_table", scan_theta_discretization=36, laser_offset=(0.275, 0.01, 0.02),
+                     lidar_scale_to_map_scale=0.99, occupancy_map=m)
+    rng = np.random.default_rng(3)
+    particles = np.column_stack([rng.uniform(-0.5, 25.5, 400), rng.uniform(0.3, 2.7, 400), rng.uniform(-3, 3, 400)])
+    angles = np.linspace(-2.35, 2.35, 60)
+    obs = sm.expected_ranges(particles[:1], angles)[0] + rng.normal(0.0, 0.05, angles.size)
+    obs[::9] = np.inf
+    for range_max in (LIDAR_5_6, 30.0, None):
+        fast = sm.log_likelihood(particles, obs, angles, range_max=range_max)
+        ref = sm.log_likelihood_numpy(particles, obs, angles, range_max=range_max)
+        assert np.array_equal(np.isneginf(fast), np.isneginf(ref)) and np.isfinite(ref).sum() > 100
+        np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-9)

@@ -5,7 +5,7 @@ or the course's tests construct it (defaults only), timed on the Stata basement.
     sm.evaluate(particles, observation, angles)          # particles uniform over the free space
 
 Prints the median / p95 of the full ``evaluate`` (weights, not log weights) per workload, on one
-core, after a warm-up; ``--json`` prints the same as one object. Targets (issue 9): 4000 × 60
+core, after a warm-up; ``--json`` prints the same as one object. Targets: 4000 × 60
 ≤ 6 ms, 10 000 × 100 ≤ 25 ms.
 """
 from __future__ import annotations

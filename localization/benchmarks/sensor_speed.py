@@ -1,5 +1,5 @@
 """Sensor models (beam vs likelihood field) and adaptive vs fixed particle counts: the speed
-figures ``python -m localization.benchmarks.speed`` prints in the same run (issue 12; JSON keys
+figures ``python -m localization.benchmarks.speed`` prints in the same run (JSON keys
 ``likelihood_field`` and ``adaptive``).
 
 - both models' evaluation (``log_likelihood``) and full sensor update (downsample, evaluate,
@@ -9,9 +9,16 @@ figures ``python -m localization.benchmarks.speed`` prints in the same run (issu
 - one sensor update + resampling of a tight (tracking: 0.1 m, 0.05 rad) and a spread (global:
   uniform) cloud, fixed count vs KLD-adaptive (``adaptive_particles``): the particle count it
   leaves and its time. The accuracy of each is ``localization.benchmarks.models``.
+
+On its own: ``python -m localization.benchmarks.sensor_speed [--quick] [--json] [--map NAME]``
+(the default ``lookup_table`` caster, its table from the user's cache).
 """
 from __future__ import annotations
 
+import argparse
+import json
+import os
+import sys
 import time
 
 import numpy as np
@@ -26,6 +33,16 @@ SCAN_HALF_ANGLE = 2.356194490192345  # rad
 
 def _median_ms(samples) -> float:
     return float(np.median(np.asarray(samples) * 1e3))
+
+
+def full_scan(exact, occupancy_map, rng):
+    """A synthetic full scan (1081 beams over 270°, range_max 30 m) from a random free pose, with range
+    noise and 2 % dropouts (as ``speed._full_scan``, which the speed benchmark passes instead)."""
+    pose = occupancy_map.sample_free_poses(1, rng)
+    angles = np.linspace(-SCAN_HALF_ANGLE, SCAN_HALF_ANGLE, FULL_SCAN_BEAMS)
+    ranges = exact.cast(pose, angles)[0] + rng.normal(0.0, 0.02, FULL_SCAN_BEAMS)
+    ranges[rng.random(FULL_SCAN_BEAMS) < 0.02] = np.inf
+    return ranges, angles[0], angles[-1], (angles[-1] - angles[0]) / (FULL_SCAN_BEAMS - 1), 0.02, 30.0
 
 
 def bench_models(occupancy_map, exact, params, quick: bool, rng, full_scan) -> dict:
@@ -134,3 +151,28 @@ def format_models(r: dict) -> list:
         lines.append(f"{c['sensor_model']:<17} {c['cloud']:<7} {c['mode']:<9} "
                      f"{c['particles_before']:>12} -> {c['particles_after']:<11} {c['update_ms_median']:10.2f}")
     return lines
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m localization.benchmarks.sensor_speed",
+                                 description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object instead of the report")
+    ap.add_argument("--quick", action="store_true", help="a small smoke run (one workload, few repetitions)")
+    ap.add_argument("--map", default="stata_basement", help="map name or YAML path (default stata_basement)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+    from localization.core.occupancy_map import OccupancyMap, resolve_map_path
+    from localization.core.parameters import Parameters
+    from localization.core.raycast.exact import ExactRayCaster
+
+    occupancy_map = OccupancyMap.from_yaml(resolve_map_path(args.map))
+    params = Parameters(ray_caster="lookup_table", random_seed=args.seed)
+    exact = ExactRayCaster(occupancy_map, 30.0)
+    r = bench_models(occupancy_map, exact, params, args.quick, np.random.default_rng(args.seed), full_scan)
+    print(json.dumps(r) if args.json else "\n".join(format_models(r)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

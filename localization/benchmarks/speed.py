@@ -100,7 +100,8 @@ def probe_init(map_name: str, theta_bins: int, particles: int, beams: int) -> di
     params = Parameters(num_particles=particles, num_beams_per_particle=beams,  # the default (lookup-table) caster
                         scan_theta_discretization=theta_bins, random_seed=0)
     loc = Localizer(params)
-    loc.set_map(occupancy_map)
+    caster = loc.prepare_ray_caster(occupancy_map)  # what set_map does, the caster kept for its figures
+    loc.set_map(occupancy_map, caster)
     t3 = time.perf_counter()
     rng = np.random.default_rng(0)
     pose = occupancy_map.sample_free_poses(1, rng)[0]
@@ -108,11 +109,10 @@ def probe_init(map_name: str, theta_bins: int, particles: int, beams: int) -> di
     loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.1))
     loc.on_odometry(TwistData(ODOM_DT, 1.0, 0.0, 0.1))
     t4 = time.perf_counter()
-    scan = _full_scan(ExactRayCaster(occupancy_map, loc.filter.sensor_model.max_range), occupancy_map, rng)
+    scan = _full_scan(ExactRayCaster(occupancy_map, caster.max_range), occupancy_map, rng)
     t5 = time.perf_counter()
     loc.on_scan(ScanData(ODOM_DT, *scan))
     t6 = time.perf_counter()
-    caster = loc.filter.sensor_model.ray_caster
     return {
         "import_s": t1 - t0 + (t0 - T_PROCESS), "map_load_s": t2 - t1, "set_map_s": t3 - t2,
         "first_updates_s": (t4 - t3) + (t6 - t5), "init_s": (t3 - t2) + (t4 - t3) + (t6 - t5),
@@ -169,11 +169,10 @@ def run(map_name="stata_basement", theta_bins=None, quick=False, seed=0, progres
         cold = _run_probe(map_name, theta_bins, 4000, 60, tables, jit)
         cached = _run_probe(map_name, theta_bins, 4000, 60, tables, jit)
         # the probes' table: the benchmark neither needs nor touches the user's cache
-        sensor_model.map = occupancy_map  # max_range depends on the map's resolution
-        caster = LookupTableRayCaster.for_map(occupancy_map, sensor_model.max_range, theta_bins, cache_dir=tables)
+        caster = LookupTableRayCaster.for_map(occupancy_map, sensor_model.table_range, theta_bins, cache_dir=tables)
     result.update(init_cold_s=cold["init_s"], init_cached_s=cached["init_s"],
                   peak_rss_mb=max(cold["peak_rss_mb"], cached["peak_rss_mb"]), init_cold=cold, init_cached=cached)
-    sensor_model.set_map(occupancy_map, ray_caster=caster)
+    sensor_model.set_map(occupancy_map, caster)
     exact = ExactRayCaster(occupancy_map, sensor_model.max_range)
     offset = sensor_model.laser_offset
     delta = integrate_twist(2.0, 0.0, 0.5, ODOM_DT)
@@ -253,7 +252,7 @@ def run(map_name="stata_basement", theta_bins=None, quick=False, seed=0, progres
     finish = {"refine_cells": refined.refine, "median_abs_cells": float(np.median(diff)),
               "p95_abs_cells": float(np.percentile(diff, 95)), "exact_fraction": float(np.mean(diff < 1e-6)),
               "workloads": []}
-    sensor_model.set_map(occupancy_map, ray_caster=refined)
+    sensor_model.set_map(occupancy_map, refined)
     for n, b in ([(2000, 60)] if quick else [(4000, 60), (10000, 60)]):
         pf = MonteCarloLocalizer(motion_model, sensor_model, n, params.resample_ess_fraction,
                                  (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng)
@@ -267,12 +266,12 @@ def run(map_name="stata_basement", theta_bins=None, quick=False, seed=0, progres
             if rep:
                 update_t.append(time.perf_counter() - t0)
         finish["workloads"].append({"particles": n, "beams": b, "sensor_update_ms_median": _stats(update_t)[0]})
-    sensor_model.set_map(occupancy_map, ray_caster=caster)
+    sensor_model.set_map(occupancy_map, caster)
     result["exact_finish"] = finish
     say("sensor models and adaptive particle counts ...")
     from localization.benchmarks.sensor_speed import bench_models
     result.update(bench_models(occupancy_map, exact, params, quick, rng, _full_scan))
-    say("scan deskew ...")  # issue 10: the sensor update with per-beam laser offsets vs without
+    say("scan deskew ...")  # the sensor update with per-beam laser offsets vs without
     from localization.benchmarks.deskew_speed import bench_deskew
     result.update(bench_deskew(sensor_model, occupancy_map, exact, params, quick, rng))
     result["bench_peak_rss_mb"] = _rss_peak_mb()

@@ -35,14 +35,14 @@ class GlobalSeeder:
         pf.kld_hold = True
         self.pending = self.params.global_init == "scan"
 
-    def seed(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles) -> None:
+    def seed(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles, range_max: float) -> None:
         """global_init scan: replace the pending uniform spread by poses this scan fits."""
         if not self.pending:
             return
         self.pending = False
         t0 = time.perf_counter()
         seeds = seed_from_scan(occupancy_map, pf.sensor_model, ranges, angles, pf.num_particles, pf.rng,
-                               ScanSeedParams.from_parameters(self.params))
+                               ScanSeedParams.from_parameters(self.params), range_max=range_max)
         pf.set_particles(seeds.poses)
         self.log.info(f"global localization: {seeds.lattice_poses} lattice poses scored against the scan in "
                       f"{time.perf_counter() - t0:.2f} s; {len(seeds.poses)} particles drawn around the best "
@@ -56,11 +56,12 @@ class GlobalSeeder:
         self.log.info(f"global localization converged at ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f}): "
                       f"{pf.num_particles} particles")
 
-    def challenger(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles) -> MonteCarloLocalizer:
+    def challenger(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles,
+                   range_max: float) -> MonteCarloLocalizer:
         """A second, small cloud of recovery_particles drawn where this scan fits the map (same models)."""
         params = replace(ScanSeedParams.from_parameters(self.params), global_seed_uniform=0.0)
         seeds = seed_from_scan(occupancy_map, pf.sensor_model, ranges, angles, self.params.recovery_particles,
-                               pf.rng, params)
+                               pf.rng, params, range_max=range_max)
         cloud = MonteCarloLocalizer(pf.motion_model, pf.sensor_model, len(seeds.poses), pf.resample_ess_fraction,
                                     pf.roughening, pf.rng)
         cloud.set_particles(seeds.poses)

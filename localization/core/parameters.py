@@ -6,6 +6,7 @@ read the same names from a ROS 2 parameter file (``config/params.yaml``,
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,6 +47,22 @@ def _topic(v):
 
 def _one_of(*options):
     return lambda v: v in options
+
+
+def _alpha(v):
+    return _finite(v) and (v >= 0 or v == -1)
+
+
+#: robot_model_type's accepted names -> the motion model's robot model (core/motion.py ROBOT_MODELS); nav2_amcl's
+#: plugin names (Humble and later) and its earlier short names included
+ROBOT_MODEL_TYPES = {
+    "ackermann": "ackermann",
+    "differential": "differential",
+    "omni": "omni",
+    "omnidirectional": "omni",
+    "nav2_amcl::DifferentialMotionModel": "differential",
+    "nav2_amcl::OmniMotionModel": "omni",
+}
 
 
 PARAMETERS = [
@@ -97,8 +114,20 @@ PARAMETERS = [
           lambda v: isinstance(v, int) and 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
     Param("global_converged_std", 0.5, "a global spread has converged when the cloud's position std (m, largest "
           "axis) falls below this", _positive, "> 0"),
-    Param("recovery", True, "detect a lost filter (scan-map agreement, see health_*) and re-spread particles "
-          "globally (kidnapped robot)", lambda v: isinstance(v, bool), "true or false"),
+    Param("recovery", True, "detect a lost filter (scan-map agreement, see health_*): hold the pose on odometry "
+          "(updates only where they agree with the map) and search the map for a place the scans fit clearly "
+          "better; switch there only once confirmed (recovery_*). Never a jump on one scan",
+          lambda v: isinstance(v, bool), "true or false"),
+    Param("recovery_search_period", 2.0, "while lost: seconds (scan clock) between two searches of the map for a "
+          "challenger (a scan-seeded second cloud)", _positive, "> 0"),
+    Param("recovery_particles", 2000, "particles of a challenger cloud", lambda v: isinstance(v, int) and v >= 10,
+          "an integer >= 10"),
+    Param("recovery_margin", 0.15, "a challenger wins an update when its scan-map agreement beats the estimate's "
+          "by this much (and reaches health_lost_floor)", _fraction, "in [0, 1]"),
+    Param("recovery_confirm_updates", 10, "a challenger replaces the cloud after winning this many updates in a row",
+          lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
+    Param("recovery_challenger_timeout", 5.0, "a challenger that has not won within this long (s, scan clock) is "
+          "dropped", _positive, "> 0"),
     Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "
           "health)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),
     Param("health_slow_alpha", 0.02, "weight of each new agreement in the slow average",
@@ -109,16 +138,41 @@ PARAMETERS = [
     Param("health_lost_ratio", 0.5, "... or below this fraction of the slow average ...", _fraction, "in [0, 1]"),
     Param("health_lost_updates", 20, "... for this many sensor updates in a row",
           lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    # --- motion model
+    # --- motion model (core/motion.py: a random walk in the distance travelled and the angle turned)
     Param("deterministic", False, "no motion noise: exact odometry composition", lambda v: isinstance(v, bool),
           "true or false"),
-    Param("motion_a_trans", 0.1, "x noise std per metre travelled", _non_negative, ">= 0"),
-    Param("motion_a_lateral", 0.05, "y noise std per metre travelled", _non_negative, ">= 0"),
-    Param("motion_a_rot", 0.2, "theta noise std per radian turned", _non_negative, ">= 0"),
-    Param("motion_a_rot_to_trans", 0.02, "x noise std (m) per radian turned", _non_negative, ">= 0"),
-    Param("motion_a_trans_to_rot", 0.1, "theta noise std (rad) per metre travelled", _non_negative, ">= 0"),
-    Param("motion_floor_xy", 0.006, "x/y noise std floor (m) per update while moving", _non_negative, ">= 0"),
-    Param("motion_floor_theta", 0.006, "theta noise std floor (rad) per update while moving", _non_negative, ">= 0"),
+    Param("robot_model_type", "ackermann", "the base's kinematics: ackermann (a car: keeps the odometry's sideways "
+          "motion, noise along/across its heading), differential (turns on the spot; sideways odometry vy is "
+          "ignored), omni (moves sideways; noise along/across its direction of travel); nav2's names "
+          "nav2_amcl::DifferentialMotionModel, nav2_amcl::OmniMotionModel, omnidirectional are accepted",
+          _one_of(*ROBOT_MODEL_TYPES), "one of " + ", ".join(ROBOT_MODEL_TYPES)),
+    Param("motion_a_trans", 0.05, "along-track noise std (m) per square root of a metre travelled (m/sqrt(m)): "
+          "variance grows by motion_a_trans^2 per metre", _non_negative, ">= 0"),
+    Param("motion_a_lateral", 0.04, "across-track noise std (m) per square root of a metre travelled (m/sqrt(m))",
+          _non_negative, ">= 0"),
+    Param("motion_a_rot", 0.1, "heading noise std (rad) per square root of a radian turned (rad/sqrt(rad))",
+          _non_negative, ">= 0"),
+    Param("motion_a_rot_to_trans", 0.02, "position noise std (m, along and across) per square root of a radian "
+          "turned (m/sqrt(rad))", _non_negative, ">= 0"),
+    Param("motion_a_trans_to_rot", 0.05, "heading noise std (rad) per square root of a metre travelled "
+          "(rad/sqrt(m))", _non_negative, ">= 0"),
+    Param("motion_floor_xy", 0.02, "position noise std (m, along and across) per square root of the motion "
+          "(metres travelled + radians turned)", _non_negative, ">= 0"),
+    Param("motion_floor_theta", 0.02, "heading noise std (rad) per square root of the motion (metres travelled "
+          "+ radians turned)", _non_negative, ">= 0"),
+    # nav2_amcl's names: set (>= 0), each replaces the motion_* value it maps to, converted from nav2's
+    # per-update variances (core/motion.py, nav2_alphas_to_noise); -1 = not set
+    Param("alpha1", -1.0, "nav2_amcl: rotation noise from rotation; sets motion_a_rot = sqrt(alpha1 x 0.2 rad); "
+          "-1: not set", _alpha, "-1 (not set) or >= 0"),
+    Param("alpha2", -1.0, "nav2_amcl: rotation noise from translation; sets motion_a_trans_to_rot = sqrt(alpha2 x "
+          "0.25 m), x2 inside for ackermann/differential (nav2 draws it twice per update); -1: not set", _alpha,
+          "-1 (not set) or >= 0"),
+    Param("alpha3", -1.0, "nav2_amcl: translation noise from translation; sets motion_a_trans = sqrt(alpha3 x 0.25 "
+          "m); -1: not set", _alpha, "-1 (not set) or >= 0"),
+    Param("alpha4", -1.0, "nav2_amcl: translation noise from rotation; sets motion_a_rot_to_trans = sqrt(alpha4 x "
+          "0.2 rad); -1: not set", _alpha, "-1 (not set) or >= 0"),
+    Param("alpha5", -1.0, "nav2_amcl: strafe noise from translation (omni only); sets motion_a_lateral = "
+          "sqrt(alpha5 x 0.25 m); -1: not set", _alpha, "-1 (not set) or >= 0"),
     # --- sensor model
     Param("num_beams_per_particle", 100, "beams of each scan used by the sensor model",
           lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
@@ -136,10 +190,16 @@ PARAMETERS = [
     Param("alpha_short", 0.07, "weight of the short-reading component", _non_negative, ">= 0"),
     Param("alpha_max", 0.07, "weight of the max-range component", _non_negative, ">= 0"),
     Param("alpha_rand", 0.12, "weight of the uniform random component", _non_negative, ">= 0"),
-    Param("sigma_hit", 4.0, "std of the hit component, in map cells", _positive, "> 0"),
+    Param("sigma_hit", 0.2, "std (m) of the hit component (Gaussian around the expected range); before 2026-11 "
+          "this was in map cells: give cells as sigma_hit_cells (converted with table_resolution)",
+          lambda v: _positive(v) and v <= 1.0, "> 0 and <= 1 (metres)"),
     Param("squash_factor", 2.2, "likelihoods are raised to 1/squash_factor", _positive, "> 0"),
-    Param("table_width", 201, "sensor model table size; z_max = table_width - 1 cells",
+    Param("table_width", 201, "beam model table size in table cells (rows: measured range, columns: expected "
+          "range, each column normalised); it covers ranges up to (table_width - 1) x table_resolution m, which "
+          "also bounds z_max and the ray casts",
           lambda v: isinstance(v, int) and 2 <= v <= 4096, "an integer in [2, 4096]"),
+    Param("table_resolution", 0.05, "beam model table cell (m): measured and expected ranges are binned to it "
+          "(independent of the map's resolution)", lambda v: _positive(v) and v <= 1.0, "> 0 and <= 1"),
     Param("ray_caster", "lookup_table", "lookup_table (fast, cached on disk), lookup_table_exact (the table "
           "plus an exact finish per beam: slower, as accurate as exact), distance_transform or exact",
           _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
@@ -172,7 +232,7 @@ PARAMETERS = [
     Param("persist_pose_file", "", "file of the persisted pose; empty: last_pose.yaml in the cache directory "
           "($LOCALIZATION_CACHE_DIR or ~/.cache/localization)", lambda v: isinstance(v, str), "a path or empty"),
     Param("persist_pose_period", 3.0, "seconds between two writes of the persisted pose", _positive, "> 0"),
-    # --- global localization in seconds and large maps (issue 12, items 3-4): core/filter/global_init.py,
+    # --- global localization in seconds and large maps: core/filter/global_init.py,
     # core/raycast/lookup_table.py (tiles built on demand)
     Param("global_init", "scan", "how a global spread (start, service, recovery) places its particles: scan "
           "(importance sampling of poses from the first scan over a coarse lattice, see global_seed_*) or uniform "
@@ -192,7 +252,7 @@ PARAMETERS = [
     Param("range_table_lazy_cells", 10_000_000, "maps with more cells than this build the lookup table tile by "
           "tile where particles are (memory grows with the area driven, not with the map); 0: always",
           lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
-    # --- likelihood-field sensor model and KLD-adaptive particle count (issue 12, items 1-2):
+    # --- likelihood-field sensor model and KLD-adaptive particle count:
     # core/sensors/likelihood_field.py, core/filter/kld.py (names as nav2_amcl's, lf_ where the beam model has one)
     Param("sensor_model", "beam", "beam (the course's beam model over ray-cast ranges) or likelihood_field (each "
           "beam's end point scored by its distance to the nearest occupied cell, as nav2_amcl's likelihood_field; "
@@ -201,13 +261,16 @@ PARAMETERS = [
           "obstacle", _non_negative, ">= 0"),
     Param("lf_z_rand", 0.5, "likelihood_field: weight of the uniform density 1 / laser_max_range", _non_negative,
           ">= 0"),
-    Param("lf_sigma_hit", 0.1, "likelihood_field: std (m) of that Gaussian (the beam model's sigma_hit is in cells; "
-          "nav2's default 0.2 is worse on the Stata trials and the RSS 2022 bags, docs/models.md)",
-          _positive, "> 0"),
+    Param("lf_sigma_hit", 0.1, "likelihood_field: std (m) of that Gaussian (nav2's default 0.2 is worse on the "
+          "Stata trials and the RSS 2022 bags, docs/models.md)", _positive, "> 0"),
     Param("laser_likelihood_max_dist", 2.0, "likelihood_field: distances to the nearest obstacle are capped at this "
           "(m); end points off the map count as this far", _positive, "> 0"),
-    Param("laser_max_range", 30.0, "likelihood_field: beams at or beyond this range (m), or invalid, are skipped "
-          "(max-range readings say nothing about where an obstacle is)", _positive, "> 0"),
+    Param("laser_max_range", -1.0, "z_max, the range (m) of a reading with no return, for both sensor models: > 0: "
+          "this value (the lidar's maximum range); <= 0: each scan's own range_max (as nav2_amcl's -1). The beam "
+          "model scores readings at or beyond z_max, and NaN/inf ones, as max-range readings at z_max, clips "
+          "expected ranges there and caps z_max at its table's reach (table_width - 1) x table_resolution; the "
+          "likelihood field skips those beams and uses z_max in its uniform density lf_z_rand / z_max",
+          _finite, "finite (<= 0: the scan's range_max)"),
     Param("do_beamskip", False, "likelihood_field: ignore beams whose end points lie near an obstacle for less than "
           "beam_skip_threshold of the particles (unmapped obstacles), as nav2_amcl", lambda v: isinstance(v, bool),
           "true or false"),
@@ -251,6 +314,14 @@ PARAMETERS = [
     Param("update_every_n_scans", 0, "besides motion (update_min_distance / update_min_angle), every n-th scan "
           "updates the filter even when the robot stands; 0: only on motion", lambda v: isinstance(v, int) and v >= 0,
           "an integer >= 0"),
+    Param("scan_stamp", "first_beam", "which beam a scan's header stamp describes: first_beam (the LaserScan "
+          "definition; sick_scan) or last_beam (urg_node with calibrate_time false, rplidar_ros: the stamp is taken "
+          "when the scan is complete); the scan's time is then the middle of its sweep (docs/timing.md; "
+          "localization-calibrate checks it against the bag's record times)", _one_of("first_beam", "last_beam"),
+          "first_beam or last_beam"),
+    Param("scan_stamp_offset", 0.0, "s by which the header stamp is later than the beam scan_stamp names (a "
+          "driver latency it did not subtract); the first beam's time is stamp - scan_stamp_offset (first_beam) "
+          "or that minus the sweep (last_beam)", lambda v: _finite(v) and abs(v) <= 1.0, "in [-1, 1]"),
     Param("odom_speed_scale", 1.0, "speed used = odom_speed_scale x reported speed", _positive, "> 0"),
     Param("odom_yaw_rate_scale", 1.0, "yaw rate used = odom_yaw_rate_scale x reported yaw rate + odom_yaw_rate_bias",
           _positive, "> 0"),
@@ -267,10 +338,29 @@ BY_NAME = {p.name: p for p in PARAMETERS}
 #: the node's tuned defaults above. This is the only place such a difference is stated
 #: (``test_parameters.py`` checks every model's defaults against the table and this list).
 COURSE_DEFAULTS = {
-    "sigma_hit": 8.0,  # the course's beam model; the node's 4.0 is tuned on the Stata basement
+    "sigma_hit": 0.4,  # m: the course's beam model (8 cells of 0.05 m); the node's 0.2 is tuned on the Stata basement
     "laser_offset_x": 0.0,  # the course's model casts from base_link; the racecar's laser is 0.275 m ahead
-    "motion_floor_xy": 0.002,  # the course's MotionModel adds little noise at rest-to-slow motion
-    "motion_floor_theta": 0.002,
+    "motion_floor_xy": 0.007,  # the course's MotionModel adds less isotropic noise (per metre or radian)
+    "motion_floor_theta": 0.007,
+}
+
+
+@dataclass(frozen=True)
+class Deprecated:
+    """An old parameter name still accepted: its value becomes ``new`` through ``convert(value,
+    params)`` (``params``: the values set so far, e.g. for a unit), with one warning."""
+
+    new: str
+    convert: Callable[[Any, dict], Any]
+    message: str
+
+
+#: Old names → their replacement (``Parameters`` converts them after every other value is set).
+DEPRECATED = {
+    "sigma_hit_cells": Deprecated(
+        "sigma_hit", lambda v, values: float(v) * values["table_resolution"] if _finite(v) else v,
+        "sigma_hit_cells is deprecated: sigma_hit is in metres now (sigma_hit = sigma_hit_cells x "
+        "table_resolution)"),
 }
 
 
@@ -303,11 +393,18 @@ class Parameters(dict):
         super().__init__({p.name: p.default for p in PARAMETERS})
         merged = dict(values or {})
         merged.update(overrides)
-        for name, value in merged.items():
+        # deprecated names last: their conversion may read another value (sigma_hit_cells: table_resolution)
+        for name, value in sorted(merged.items(), key=lambda item: item[0] in DEPRECATED):
             self[name] = value
         self.validate()
 
     def __setitem__(self, name, value):
+        if name in DEPRECATED:
+            old = DEPRECATED[name]
+            converted = old.convert(value, self)
+            logging.getLogger("localization.parameters").warning(
+                f"{old.message}: {name}={value!r} -> {old.new}={converted!r}")
+            name, value = old.new, converted
         if name not in BY_NAME:
             raise ParameterError(f"unknown parameter {name!r}")
         default = BY_NAME[name].default
@@ -344,9 +441,35 @@ class Parameters(dict):
             doc = yaml.safe_load(Path(path).read_text()) or {}
         except (OSError, yaml.YAMLError) as exc:
             raise ParameterError(f"cannot read parameter file {path}: {exc}") from exc
+        keys = list(doc) if isinstance(doc, dict) else []
+        matching = node_sections(keys, node_name)
+        if not matching:
+            raise ParameterError(section_error(path, keys, node_name))
         values = {}
-        for key in ("/**", node_name, "/" + node_name):
-            section = doc.get(key, {}) if isinstance(doc, dict) else {}
-            values.update(_flatten((section or {}).get("ros__parameters", {}) or {}))
+        for key in matching:  # in file order, as rcl applies them
+            values.update(_flatten((doc[key] or {}).get("ros__parameters", {}) or {}))
         values.update(overrides)
         return cls(values)
+
+
+def node_sections(keys, node_name: str = NODE_NAME, namespace: str = "/") -> list:
+    """The keys of a ROS 2 parameter file that apply to the node ``namespace/node_name``, in their
+    order: a fully qualified name (the leading ``/`` optional), where ``*`` stands for one name
+    token and ``**`` for any number (rcl's rule; ``/**`` applies to every node)."""
+    import re
+    full = "/".join(t for t in f"{namespace}/{node_name}".split("/") if t)
+    out = []
+    for key in keys:
+        tokens = [t for t in str(key).split("/") if t]
+        pattern = "".join("(?:/[^/]+)*" if t == "**" else "/[^/]+" if t == "*" else "/" + re.escape(t)
+                          for t in tokens)
+        if tokens and re.fullmatch(pattern, "/" + full):
+            out.append(key)
+    return out
+
+
+def section_error(path, keys, node_name: str = NODE_NAME) -> str:
+    """The one-line error for a parameter file without a section for the node."""
+    found = ", ".join(repr(str(k)) for k in keys) or "none"
+    return (f"parameter file {path} has no section for the node {node_name!r} (keys found: {found}); "
+            f"its parameters go under '{node_name}:' or '/**:', then 'ros__parameters:'")

@@ -111,7 +111,7 @@ class ScanStep:
             return StepOutcome()
         b, rmin, rmax = usable
         beams = (b.ranges, b.angles, rmin, rmax)
-        self.seeder.seed(pf, occupancy_map, b.ranges, b.angles)
+        self.seeder.seed(pf, occupancy_map, b.ranges, b.angles, rmax)
         offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset) if (
             p.deskew and model.supports_deskew) else None
         if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
@@ -137,7 +137,7 @@ class ScanStep:
         """While holding: search for, update and judge a challenger; its estimate when it wins."""
         recovery = self.recovery
         if recovery.search_due(t_s):
-            recovery.start(self.seeder.challenger(self.pf, occupancy_map, b.ranges, b.angles), t_s)
+            recovery.start(self.seeder.challenger(self.pf, occupancy_map, b.ranges, b.angles, beams[3]), t_s)
             return None  # its first update is the next scan's
         if recovery.challenger is None:
             return None

@@ -27,10 +27,11 @@ hypotheses the single scan cannot tell apart (a self-similar corridor) alive unt
 disambiguates them.
 
 Cost: (|F| / step²) · H poses × ``beams`` beams through the sensor model, in chunks of
-``chunk`` poses (bounded memory). With a range table built per tile (large maps) the lattice is
-scored tile by tile and the tiles built only for it are released after each chunk: the pass
-costs the whole table's build time but only a chunk's tiles of memory. numpy only (the sensor
-model brings its compiled kernel).
+``chunk`` poses (bounded memory). The lattice is scored in the model's ``locality_order`` and each
+chunk inside a ``scratch()`` scope: with a range table built per tile (large maps) that is tile by
+tile, and the tiles built only for a chunk are released after it, so the pass costs the whole
+table's build time but only a chunk's tiles of memory. numpy only (the sensor model brings its
+compiled kernel).
 """
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ import numpy as np
 
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
-from localization.core.raycast.tiled_table import TiledLookupTableRayCaster
+from localization.core.sensors import SensorModel
 
 
 @dataclass(frozen=True)
@@ -91,9 +92,11 @@ def subset_beams(ranges, angles, count: int):
     return ranges[valid], angles[valid]
 
 
-def seed_from_scan(occupancy_map: OccupancyMap, sensor_model, ranges, angles, n: int, rng: np.random.Generator,
-                   params: ScanSeedParams | None = None, chunk: int = 100_000) -> SeedResult:
-    """``n`` particles drawn from the scan-driven proposal of the module docstring."""
+def seed_from_scan(occupancy_map: OccupancyMap, sensor_model: SensorModel, ranges, angles, n: int,
+                   rng: np.random.Generator, params: ScanSeedParams | None = None, chunk: int = 100_000,
+                   range_max: float | None = None) -> SeedResult:
+    """``n`` particles drawn from the scan-driven proposal of the module docstring (``range_max``:
+    the scan's, m, as in a sensor update)."""
     p = params or ScanSeedParams()
     xy = lattice_positions(occupancy_map, p.global_seed_step, rng)
     h = max(1, int(p.global_seed_headings))
@@ -103,21 +106,16 @@ def seed_from_scan(occupancy_map: OccupancyMap, sensor_model, ranges, angles, n:
     z, a = subset_beams(ranges, angles, int(p.global_seed_beams))
     k = int(min(max(1, p.global_seed_candidates), total))
     # a range table built per tile (large maps): score the lattice tile by tile and give back the
-    # tiles built only for this pass, so its memory is a chunk's tiles, not the whole map's table
-    caster = getattr(sensor_model, "ray_caster", None)
-    tiled = isinstance(caster, TiledLookupTableRayCaster)
-    if tiled:
-        xy = xy[np.argsort(caster.tile_ids(xy), kind="stable")]
-        kept = caster.built.copy()
+    # tiles built only for each chunk, so its memory is a chunk's tiles, not the whole map's table
+    xy = xy[sensor_model.locality_order(xy)]
     # the k best so far (a running top-k: memory O(chunk + k), not O(lattice))
     best_ll, best = np.empty(0), np.empty(0, dtype=np.int64)
     for start in range(0, total, chunk):  # pose i: position i // h, heading i % h
         idx = np.arange(start, min(total, start + chunk))
         poses = np.column_stack([xy[idx // h], theta[idx % h]])
-        scores = sensor_model.log_likelihood(poses, z, a)
+        with sensor_model.scratch():
+            scores = sensor_model.log_likelihood(poses, z, a, range_max=range_max)
         scores[~np.isfinite(scores)] = -np.inf
-        if tiled:
-            caster.release_tiles(np.flatnonzero(caster.built & ~kept))
         if scores.size > k:
             top = np.argpartition(-scores, k - 1)[:k]
             scores, idx = scores[top], idx[top]

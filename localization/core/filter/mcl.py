@@ -109,11 +109,10 @@ class MonteCarloLocalizer:
 
     def sensor_update(self, ranges, angles, offsets=None, range_max=None) -> SensorUpdateResult:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
-        per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``)."""
-        if offsets is None:
-            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles)
-        else:
-            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets)
+        per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``);
+        ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0."""
+        log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
+                                                   range_max=range_max)
         combined = self.log_weights + log_lik
         peak = combined.max()
         if not np.isfinite(peak):

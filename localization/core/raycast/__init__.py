@@ -26,9 +26,17 @@ from localization.core.raycast.lookup_table import DEFAULT_THETA_BINS, LookupTab
 from localization.core.raycast.tiled_table import TiledLookupTableRayCaster
 
 RAY_CASTERS = ("lookup_table", "lookup_table_exact", "distance_transform", "exact")
+TABLE_CASTERS = ("lookup_table", "lookup_table_exact")  # the casters over a precomputed range table
 
-__all__ = ["RAY_CASTERS", "DistanceTransformRayCaster", "ExactRayCaster", "LookupTableRayCaster", "RayCaster",
-           "TiledLookupTableRayCaster", "make_ray_caster"]
+__all__ = ["RAY_CASTERS", "TABLE_CASTERS", "DistanceTransformRayCaster", "ExactRayCaster", "LookupTableRayCaster",
+           "RayCaster", "TiledLookupTableRayCaster", "make_ray_caster", "tiled"]
+
+
+def tiled(occupancy_map: OccupancyMap, lazy_cells: int | None = None) -> bool:
+    """Whether a table caster of this map is built tile by tile (more than ``lazy_cells`` cells;
+    default: the ``range_table_lazy_cells`` parameter)."""
+    lazy_cells = default("range_table_lazy_cells") if lazy_cells is None else int(lazy_cells)
+    return occupancy_map.data.size > lazy_cells
 
 
 def make_ray_caster(kind: str, occupancy_map: OccupancyMap, max_range: float,
@@ -40,9 +48,8 @@ def make_ray_caster(kind: str, occupancy_map: OccupancyMap, max_range: float,
         return ExactRayCaster(occupancy_map, max_range)
     if kind == "distance_transform":
         return DistanceTransformRayCaster(occupancy_map, max_range)
-    if kind in ("lookup_table", "lookup_table_exact"):
-        lazy_cells = default("range_table_lazy_cells") if lazy_cells is None else int(lazy_cells)
-        if occupancy_map.data.size > lazy_cells:
+    if kind in TABLE_CASTERS:
+        if tiled(occupancy_map, lazy_cells):
             return TiledLookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,
                                                      refine=1.0 if kind == "lookup_table_exact" else 0.0)
         return LookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,

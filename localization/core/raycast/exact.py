@@ -14,6 +14,8 @@ builds any of them by name.
 """
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
+
 import numpy as np
 
 from localization.core.occupancy_map import OccupancyMap
@@ -31,6 +33,16 @@ class RayCaster:
         # Padded "blocking" grid: a one-cell border of blocking cells stops every ray at the edge.
         blocking = ~occupancy_map.free
         self.blocking = np.pad(blocking, 1, constant_values=True)
+
+    def scratch(self) -> AbstractContextManager:
+        """A scope whose temporary memory is given back at its end: nothing to give back here
+        (``TiledLookupTableRayCaster`` releases the tiles built inside it)."""
+        return nullcontext()
+
+    def locality_order(self, xy) -> np.ndarray:
+        """A permutation of world positions (K, 2) grouping those that share memory: the identity
+        here (``TiledLookupTableRayCaster``: by tile)."""
+        return np.arange(len(np.asarray(xy).reshape(-1, 2)))
 
     def cast(self, sensor_poses, angles) -> np.ndarray:
         """Expected ranges (metres), shape (N, B), for sensor poses (N, 3) in the world frame

@@ -46,6 +46,7 @@ from localization.core.raycast.table_cache import LIVE_TABLES, cache_file_name, 
 
 DEFAULT_THETA_BINS = 144
 BUILD_THREADS = 4  # at most: the table is built once per map, with every core the machine has
+BUILD_SECONDS_PER_RAY = 2.5e-7  # s per (free cell x heading) ray of a table build on one core: build_estimate
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +210,24 @@ class LookupTableRayCaster(RayCaster):
                                 np.tile(np.cos(th), rows.size), np.tile(np.sin(th), rows.size))
         units = np.minimum(np.minimum(cells, self.max_cells) * self.units_per_cell + 0.5, TABLE_MAX_UNITS)
         out[:] = units.astype(np.uint16).reshape(rows.size, th.size)
+
+    @staticmethod
+    def cached_source(occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,
+                      cache_dir=None) -> str:
+        """Where ``for_map`` would find this table: "memory" (a live caster's), "disk" (the cache
+        file exists; a stale one is still rebuilt) or "" (it would be built)."""
+        name = cache_file_name(occupancy_map, max_range, int(theta_bins))
+        if LIVE_TABLES.get(name) is not None:
+            return "memory"
+        path = (Path(cache_dir).expanduser() if cache_dir else default_cache_dir()) / name
+        return "disk" if path.is_file() else ""
+
+    @staticmethod
+    def build_estimate(occupancy_map: OccupancyMap, theta_bins: int = DEFAULT_THETA_BINS) -> float:
+        """Expected seconds of a full table build on this machine (``BUILD_SECONDS_PER_RAY`` per ray,
+        on up to BUILD_THREADS cores, at most two counted: the machine is rarely idle)."""
+        rays = int(np.count_nonzero(occupancy_map.free)) * int(theta_bins)
+        return rays * BUILD_SECONDS_PER_RAY / max(1, min(2, BUILD_THREADS, os.cpu_count() or 1))
 
     @classmethod
     def for_map(cls, occupancy_map: OccupancyMap, max_range: float, theta_bins: int = DEFAULT_THETA_BINS,

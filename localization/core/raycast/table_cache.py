@@ -1,4 +1,6 @@
 """The range table's disk cache: one ``.npz`` per (map content, max range, heading bins, format).
+The map's ``digest`` and the max range are quantized, so one map has one file whether it was read
+from its YAML or received as a nav_msgs/OccupancyGrid (float32 resolution).
 
 Files are written atomically (``paths.atomic_write``) so a crash or a concurrent writer never
 leaves half a table; a stale or unreadable file only costs a rebuild. Tables alive in this
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import weakref
 import zipfile
 from pathlib import Path
@@ -26,9 +29,29 @@ log = logging.getLogger(__name__)
 LIVE_TABLES: "weakref.WeakValueDictionary[str, np.ndarray]" = weakref.WeakValueDictionary()
 
 
+RANGE_DECIMALS = 6  # the max range (m) names a cache file rounded to 1e-6 m
+META_RTOL = 1e-6  # a cached table's float meta data (max range, units per cell) match within this
+
+
 def cache_file_name(occupancy_map: OccupancyMap, max_range: float, theta_bins: int) -> str:
-    """The cache key as a file name: map content digest + max range + bins + format version."""
-    return f"range_table_v{FORMAT_VERSION}_{occupancy_map.digest}_r{float(max_range):.9g}_k{int(theta_bins)}.npz"
+    """The cache key as a file name: map content digest + max range (rounded to RANGE_DECIMALS,
+    so a max range computed from a float32 resolution names the same file) + bins + format version."""
+    r = round(float(max_range), RANGE_DECIMALS)
+    return f"range_table_v{FORMAT_VERSION}_{occupancy_map.digest}_r{r:.9g}_k{int(theta_bins)}.npz"
+
+
+def meta_matches(meta: dict, expected: dict) -> bool:
+    """The same keys and values; floats within META_RTOL (the same map as YAML or as a message)."""
+    if not isinstance(meta, dict) or set(meta) != set(expected):
+        return False
+    for key, want in expected.items():
+        got = meta[key]
+        if isinstance(want, float) and isinstance(got, (int, float)) and not isinstance(got, bool):
+            if not math.isclose(got, want, rel_tol=META_RTOL):
+                return False
+        elif got != want:
+            return False
+    return True
 
 
 def table_meta(occupancy_map: OccupancyMap, max_range: float, theta_bins: int) -> dict:
@@ -45,7 +68,7 @@ def load_table(path: Path, occupancy_map: OccupancyMap, max_range: float, theta_
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             expected = table_meta(occupancy_map, max_range, theta_bins)
-            if meta != expected:
+            if not meta_matches(meta, expected):
                 log.warning("range table cache %s does not match this map/parameters: rebuilding", path)
                 return None
             table = data["table"]

@@ -29,6 +29,7 @@ import mmap
 import os
 import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -149,6 +150,20 @@ class TiledLookupTableRayCaster(LookupTableRayCaster):
                 self.built[t] = False
                 released += 1
         return released
+
+    @contextmanager
+    def scratch(self):
+        """A scope whose tiles are temporary: the tiles built inside it (not those built before)
+        are released when it ends, e.g. scoring a global lattice one chunk at a time."""
+        kept = self.built.copy()
+        try:
+            yield self
+        finally:
+            self.release_tiles(np.flatnonzero(self.built & ~kept))
+
+    def locality_order(self, xy) -> np.ndarray:
+        """A permutation of world positions (K, 2) by tile (stable: their order within a tile kept)."""
+        return np.argsort(self.tile_ids(xy), kind="stable")
 
     def ensure_tiles(self, tiles) -> int:
         """Build the listed tiles not built yet; returns how many were built."""

@@ -1,33 +1,104 @@
 """Sensor models: how likely a scan is from each particle's pose.
 
-Every model follows one small protocol (``SensorModel`` below, as nav2_amcl's ``sensors/laser``
-siblings and Beluga's sensor models do), so the filter, health checks, replay and benchmarks
-treat them alike:
+Every model implements ``SensorModel`` below (as nav2_amcl's ``sensors/laser`` siblings and
+Beluga's sensor models do), so the filter, global initialisation, health checks, replay and the
+benchmarks treat them alike and never look inside one:
 
-    model.set_map(occupancy_map)                     # (re)build what the model precomputes
-    model.log_likelihood(particles, ranges, angles)  # (N,) squashed log weights, -inf = impossible
+    model.preparation(map)            # Preparation(slow, note): will prepare() take seconds?
+    prepared = model.prepare(map)     # the slow part (range table, distance field); any thread
+    model.set_map(map, prepared)      # use it (prepared=None: prepare here)
+    model.set_laser_offset((x, y, yaw))                  # the laser pose in base_link
+    model.log_likelihood(particles, ranges, angles, offsets=None, range_max=None)
+                                      # (N,) squashed log weights, -inf = impossible
+    with model.scratch(): ...         # temporary memory (a tiled table's tiles) given back at the end
+
+z_max, the range of a "no return" reading (metres), is the sensor's: ``laser_max_range`` when it
+is > 0, else the scan's own ``range_max`` (``log_likelihood(..., range_max=)``), else the model's
+fallback (``max_range``); ``resolve_max_range`` is that rule.
 
 ``beam.BeamModel``: the course's beam model (p_hit, p_short, p_max, p_rand) over ray-cast
-expected ranges, tabulated 201 × 201.
-``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood field (each beam's end point
-scored by its distance to the nearest occupied cell; no ray casting); ``sensor_model`` picks one
-(``localizer.build_filter``), docs/models.md compares them.
+expected ranges, tabulated. ``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood
+field (each beam's end point scored by its distance to the nearest occupied cell; no ray casting).
+The ``sensor_model`` parameter picks one (``localizer.build_filter``); docs/models.md compares them.
 """
 from __future__ import annotations
 
-from typing import Protocol
+import math
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 
-class SensorModel(Protocol):
-    """What the filter needs of a sensor model."""
+@dataclass(frozen=True)
+class Preparation:
+    """What ``prepare(map)`` will cost, known before it runs."""
 
-    laser_offset: np.ndarray  # (3,) laser pose in base_link
+    slow: bool  # seconds of work (a range table to build): prepare off the caller's thread
+    note: str  # one line for the log, e.g. "range table: loading it from the cache for the map ..."
+
+
+def resolve_max_range(laser_max_range: float, range_max: float | None, fallback: float) -> float:
+    """z_max (m): ``laser_max_range`` when > 0, else the scan's ``range_max`` when finite and > 0,
+    else ``fallback``."""
+    if laser_max_range > 0:
+        return float(laser_max_range)
+    if range_max is not None and math.isfinite(range_max) and range_max > 0:
+        return float(range_max)
+    return float(fallback)
+
+
+@runtime_checkable
+class SensorModel(Protocol):
+    """What the filter, global initialisation and the node need of a sensor model."""
+
+    params: Any  # the model's frozen parameter dataclass
+    supports_deskew: bool  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
 
     @property
-    def max_range(self) -> float: ...
+    def laser_offset(self) -> np.ndarray:
+        """(3,) the laser pose (x m, y m, yaw rad) in base_link (a copy)."""
+        ...
 
-    def set_map(self, occupancy_map) -> None: ...
+    def set_laser_offset(self, offset) -> None:
+        """Use the laser pose ``offset`` (x, y, yaw) in base_link, e.g. read from TF."""
+        ...
 
-    def log_likelihood(self, particles, ranges, angles=None) -> np.ndarray: ...
+    @property
+    def max_range(self) -> float:
+        """z_max (m) when the scan gives none: ``laser_max_range`` if > 0, else the model's fallback."""
+        ...
+
+    def preparation(self, occupancy_map) -> Preparation:
+        """Whether ``prepare(occupancy_map)`` will be slow, and a one-line note for the log."""
+        ...
+
+    def prepare(self, occupancy_map) -> Any:
+        """The slow part of ``set_map`` (a range table built or loaded, a distance field), without
+        touching the model: safe on another thread."""
+        ...
+
+    def set_map(self, occupancy_map, prepared=None) -> None:
+        """Use a (new) map, with what ``prepare`` returned for it (None: prepare here)."""
+        ...
+
+    def log_likelihood(self, particles, ranges, angles, offsets=None, range_max=None) -> np.ndarray:
+        """(N,) squashed log weights of the beams (``ranges`` m at ``angles`` rad, laser frame);
+        -inf for impossible particles. ``offsets`` (B, 3): per-beam laser motion of a deskewed sweep
+        (ValueError from a model without ``supports_deskew``); ``range_max``: the scan's own (m)."""
+        ...
+
+    def scratch(self) -> AbstractContextManager:
+        """A scope for temporary memory: what an evaluation inside it prepares (a tiled range
+        table's tiles) is given back when it ends. A no-op for models without such memory."""
+        ...
+
+    def locality_order(self, xy) -> np.ndarray:
+        """A permutation of world positions (K, 2) that keeps consecutive ones in the same prepared
+        memory (a tiled table's tile): score them in this order inside ``scratch`` scopes. The
+        identity for models without such memory."""
+        ...
+
+
+__all__ = ["Preparation", "SensorModel", "resolve_max_range"]

@@ -1,26 +1,39 @@
 """Beam sensor model over ray-cast expected scans.
 
-For one beam with measured range z and expected (ray-cast) range d, both in map cells:
+For one beam with measured range z and expected (ray-cast) range d, both in table cells of
+``table_resolution`` metres (0.05 m by default, whatever the map's resolution), and k the row of
+z_max:
 
     p(z | d) = α_hit·p_hit + α_short·p_short + α_max·p_max + α_rand·p_rand
 
-    p_hit   = N(z; d, σ_hit²), normalised over z for each d (before mixing)
+    p_hit   = N(z; d, σ²), σ = sigma_hit / table_resolution, normalised over z for each d (before mixing)
     p_short = 2/d · (1 − z/d)  for 0 ≤ z ≤ d, d ≠ 0; else 0
-    p_max   = 1  at z = z_max (one cell wide); else 0
-    p_rand  = 1 / z_max
+    p_max   = 1  at z = k (one cell wide); else 0
+    p_rand  = 1 / k
 
-The mix is tabulated once (``sensor_model_table``: rows z, columns d, ``table_width`` each,
-z_max = table_width − 1) and every column normalised to sum to 1. A scan's likelihood is the
-product over beams, computed as a sum of logs so 100 beams never underflow, then "squashed":
+The mix is tabulated (rows z, columns d, 0 … k each) and every column normalised to sum to 1
+(``sensor_model_table``: the course's table, k = table_width − 1 = 200). A scan's likelihood is
+the product over beams, computed as a sum of logs so 100 beams never underflow, then "squashed":
 
     log w = (Σ_b log p(z_b | d_b)) / squash_factor
 
 Particles off the map or in an occupied cell get log weight −inf.
 
+z_max is the sensor's range, not the table's: ``laser_max_range`` when > 0, else the scan's
+``range_max`` (``log_likelihood(..., range_max=)``), capped at what the table covers,
+(table_width − 1) · table_resolution = 10 m by default (``sensors.resolve_max_range``). Its row is
+k = round(z_max · lidar_scale_to_map_scale / table_resolution), and the table above is built for
+that k (and cached per k). Measured readings at or beyond z_max, and NaN/inf ones ("no return";
+``scan.downsample_scan`` turns readings outside [range_min, range_max] into inf), fall in row k:
+they are scored by p_max. Expected ranges beyond z_max are clipped to it: a particle that sees
+open space beyond z_max expects a max-range reading. So a 5.6 m lidar's no-return beam supports a
+particle seeing no wall within 5.6 m, and counts against one seeing a wall at 3 m.
+
 Units: expected ranges are cast in map metres; measured ranges are lidar metres and become map
 metres times ``lidar_scale_to_map_scale`` (1 for a lidar and map that agree; the course's code
 divided both ranges by it, which only re-binned the table — here it is the correction
-``localization-calibrate`` estimates). Both are then binned at the map resolution.
+``localization-calibrate`` estimates). Both are then binned at ``table_resolution``. The ray
+caster casts no further than the table covers.
 
 With the lookup-table caster (the default) one compiled pass per particle does it all — laser
 pose, table row, interpolated range, table index, log sum — with no (N, B) temporaries
@@ -36,6 +49,7 @@ through the two bins' hit points, ``raycast.kernels.beam_ranges``) — no extra 
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -43,8 +57,9 @@ import numpy as np
 from localization.core.geometry import compose
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
-from localization.core.raycast import LookupTableRayCaster, RayCaster, make_ray_caster
+from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
 from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
+from localization.core.sensors import Preparation, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
@@ -61,8 +76,10 @@ class BeamModelParams:
     alpha_short: float = default("alpha_short", course=True)
     alpha_max: float = default("alpha_max", course=True)
     alpha_rand: float = default("alpha_rand", course=True)
-    sigma_hit: float = default("sigma_hit", course=True)  # cells
-    table_width: int = default("table_width", course=True)  # cells: z_max = table_width - 1
+    sigma_hit: float = default("sigma_hit", course=True)  # m
+    table_width: int = default("table_width", course=True)  # table cells: rows and columns 0 … table_width - 1
+    table_resolution: float = default("table_resolution", course=True)  # m per table cell
+    laser_max_range: float = default("laser_max_range", course=True)  # m; <= 0: the scan's range_max
     squash_factor: float = default("squash_factor", course=True)
     num_beams_per_particle: int = default("num_beams_per_particle", course=True)
     scan_field_of_view: float = default("scan_field_of_view", course=True)  # rad
@@ -80,9 +97,18 @@ class BeamModelParams:
         return cls(**{f.name: params[f.name] for f in fields(cls)})
 
 
+# the course's attribute names (sm.alpha_hit, sm.sigma_hit, ...): read from and written to ``params``;
+# ``ray_caster`` stays the caster object (its name is ``ray_caster_kind``)
+_PARAM_ATTRIBUTES = frozenset(f.name for f in fields(BeamModelParams)) - {"ray_caster"}
+
+
 class BeamModel:
     """The beam model (the course's ``SensorModel``). ``BeamModel(**overrides)`` or
-    ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets."""
+    ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets.
+
+    The course's attributes (``sm.alpha_hit``, ``sm.sigma_hit`` (m), ``sm.squash_factor``, ...)
+    read and write ``params`` (a new frozen dataclass per write); a write drops the tables, rebuilt
+    on use (``precompute_sensor_model()``, as the course's code calls it, rebuilds at once)."""
 
     supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
 
@@ -92,82 +118,159 @@ class BeamModel:
             ox, oy, oyaw = (float(v) for v in laser_offset)
             overrides.update(laser_offset_x=ox, laser_offset_y=oy, laser_offset_yaw=oyaw)
         self.params = replace(params or BeamModelParams(), **overrides)
-        for f in fields(self.params):  # the course's attribute names: self.alpha_hit, self.sigma_hit, ...
-            setattr(self, f.name, getattr(self.params, f.name))
-        self.laser_offset = np.array([self.laser_offset_x, self.laser_offset_y, self.laser_offset_yaw], dtype=float)
-        self.ray_caster_kind = self.params.ray_caster
         self.map: OccupancyMap | None = None
         self.ray_caster: RayCaster | None = None
-        self.sensor_model_table = None
+        self._tables: dict = {}  # z_max row k -> (table, log table) of rows/columns 0 … k
         self.precompute_sensor_model()
         if occupancy_map is not None:
             self.set_map(occupancy_map)
 
+    def __getattr__(self, name):  # only for names not found normally: the course's parameter attributes
+        if name in _PARAM_ATTRIBUTES:
+            return getattr(self.__dict__["params"], name)
+        raise AttributeError(f"{type(self).__name__!s} has no attribute {name!r}")
+
+    def __setattr__(self, name, value):
+        if name in _PARAM_ATTRIBUTES:
+            self.params = replace(self.params, **{name: value})
+            self._tables = {}  # rebuilt on use with the new value
+        else:
+            object.__setattr__(self, name, value)
+
+    @property
+    def ray_caster_kind(self) -> str:
+        return self.params.ray_caster
+
+    # ------------------------------------------------------------------ the laser
+    @property
+    def laser_offset(self) -> np.ndarray:
+        """(3,) the laser pose (x, y, yaw) in base_link (a copy)."""
+        p = self.params
+        return np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
+
+    def set_laser_offset(self, offset) -> None:
+        """Use the laser pose ``offset`` (x m, y m, yaw rad) in base_link."""
+        x, y, yaw = (float(v) for v in np.asarray(offset, dtype=float).reshape(3))
+        self.params = replace(self.params, laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw)
+
     # ------------------------------------------------------------------ the table
     @property
     def z_max(self) -> int:
-        return self.table_width - 1
+        """The table's last row and column (cells): table_width − 1 (the course's z_max)."""
+        return self.params.table_width - 1
 
-    def precompute_sensor_model(self) -> np.ndarray:
-        """(Re)build ``sensor_model_table`` from the current alphas, sigma_hit and table_width."""
-        n, z_max = self.table_width, self.table_width - 1
+    @property
+    def table_range(self) -> float:
+        """The farthest range the table covers (map metres): z_max cells of table_resolution."""
+        return self.z_max * self.params.table_resolution
+
+    def mixture_table(self, k: int) -> np.ndarray:
+        """The (k + 1, k + 1) table of the module docstring for z_max row k: rows z, columns d,
+        every column normalised."""
+        p = self.params
+        n = int(k) + 1
         if n < 2:
-            raise ValueError(f"table_width must be at least 2, got {n}")
+            raise ValueError(f"the table needs at least 2 rows, got {n}")
+        if not (p.sigma_hit > 0 and p.table_resolution > 0):
+            raise ValueError(f"sigma_hit ({p.sigma_hit}) and table_resolution ({p.table_resolution}) must be > 0")
+        sigma = p.sigma_hit / p.table_resolution  # table cells
         z = np.arange(n, dtype=float)[:, None]  # rows: measured range
         d = np.arange(n, dtype=float)[None, :]  # columns: expected range
 
-        p_hit = np.exp(-0.5 * ((z - d) / self.sigma_hit) ** 2) / np.sqrt(2.0 * np.pi * self.sigma_hit ** 2)
+        p_hit = np.exp(-0.5 * ((z - d) / sigma) ** 2) / np.sqrt(2.0 * np.pi * sigma ** 2)
         p_hit = p_hit / p_hit.sum(axis=0, keepdims=True)
         with np.errstate(divide="ignore", invalid="ignore"):
             p_short = np.where((z <= d) & (d > 0), 2.0 / d * (1.0 - z / d), 0.0)
-        p_max = np.where(z == z_max, 1.0, 0.0) * np.ones_like(d)
-        p_rand = np.full((n, n), 1.0 / z_max)
+        p_max = np.where(z == n - 1, 1.0, 0.0) * np.ones_like(d)
+        p_rand = np.full((n, n), 1.0 / (n - 1))
 
-        table = (self.alpha_hit * p_hit + self.alpha_short * p_short
-                 + self.alpha_max * p_max + self.alpha_rand * p_rand)
+        table = (p.alpha_hit * p_hit + p.alpha_short * p_short + p.alpha_max * p_max + p.alpha_rand * p_rand)
         column_sums = table.sum(axis=0, keepdims=True)
         if not np.any(column_sums > 0):
             raise ValueError("sensor model alphas are all zero; at least one must be > 0")
         # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
-        self.sensor_model_table = np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
+        return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
+
+    def precompute_sensor_model(self) -> np.ndarray:
+        """(Re)build ``sensor_model_table`` (z_max = table_width − 1) from the current alphas,
+        sigma_hit, table_width and table_resolution; tables of other z_max rows are rebuilt on use."""
+        table = self.mixture_table(self.z_max)
         with np.errstate(divide="ignore"):
-            self._log_table = np.log(self.sensor_model_table)
-        return self.sensor_model_table
+            self._tables = {self.z_max: (table, np.log(table))}
+        return table
 
-    # ------------------------------------------------------------------ the map
     @property
-    def cells_per_metre(self) -> float:
-        """Map cells per map metre (expected ranges are cast in map metres)."""
-        return 1.0 / self.map.resolution
+    def sensor_model_table(self) -> np.ndarray:
+        """The course's table: rows z, columns d, 0 … table_width − 1 cells."""
+        return self._table(self.z_max)[0]
 
+    def log_table(self, k: int | None = None) -> np.ndarray:
+        """log of the table for z_max row ``k`` (default: the table's own, table_width − 1)."""
+        return self._table(self.z_max if k is None else int(k))[1]
+
+    def _table(self, k: int):
+        tables = self._tables  # one read: another thread may replace the dict (precompute_sensor_model)
+        entry = tables.get(k)
+        if entry is None:
+            table = self.mixture_table(k)
+            with np.errstate(divide="ignore"):
+                entry = tables[k] = (table, np.log(table))
+        return entry
+
+    # ------------------------------------------------------------------ z_max
     @property
     def max_range(self) -> float:
-        """The range (map metres) of z_max: rays are cast no further."""
-        return self.max_range_in(self.map)
+        """z_max (lidar metres) when the scan gives no range_max: ``laser_max_range`` if > 0, else
+        the table's reach (see ``max_range_for``)."""
+        return self.max_range_for(None)
 
-    def max_range_in(self, occupancy_map: OccupancyMap) -> float:
-        """``max_range`` on ``occupancy_map`` (z_max cells of it)."""
-        return self.z_max * occupancy_map.resolution
+    def max_range_for(self, range_max: float | None) -> float:
+        """z_max (lidar metres) for a scan with this ``range_max``: ``laser_max_range`` if > 0, else
+        ``range_max`` if usable, capped at the table's reach (table_range / lidar_scale_to_map_scale)."""
+        reach = self.table_range / self.params.lidar_scale_to_map_scale
+        return min(resolve_max_range(self.params.laser_max_range, range_max, reach), reach)
 
-    def measured_to_cells(self, ranges) -> np.ndarray:
-        """Measured ranges (lidar metres) -> table rows: lidar_scale_to_map_scale turns lidar metres
-        into map metres (the correction ``localization-calibrate`` estimates)."""
-        return self.to_cells(np.asarray(ranges, dtype=float) * self.lidar_scale_to_map_scale)
+    def z_max_row(self, range_max: float | None = None) -> int:
+        """The table row k of z_max (see ``max_range_for``), in [1, table_width − 1]."""
+        p = self.params
+        k = int(np.rint(self.max_range_for(range_max) * p.lidar_scale_to_map_scale / p.table_resolution))
+        return min(max(k, 1), self.z_max)
+
+    # ------------------------------------------------------------------ the map
+    def preparation(self, occupancy_map: OccupancyMap) -> Preparation:
+        """Whether ``prepare`` will build a range table (seconds: prepare off-thread), and a note."""
+        p = self.params
+        free = int(np.count_nonzero(occupancy_map.free))
+        size = (f"map {occupancy_map.width}x{occupancy_map.height} cells ({free} free) x "
+                f"{p.scan_theta_discretization} headings")
+        if p.ray_caster not in TABLE_CASTERS:
+            return Preparation(False, f"ray caster {p.ray_caster}: nothing to precompute for the {size}")
+        if tiled(occupancy_map, p.range_table_lazy_cells):
+            return Preparation(False, f"range table: built tile by tile where the particles are, for the {size} "
+                                      f"(more than range_table_lazy_cells = {p.range_table_lazy_cells} cells)")
+        source = LookupTableRayCaster.cached_source(occupancy_map, self.table_range, p.scan_theta_discretization)
+        if source:
+            return Preparation(False, f"range table: loading it from the {'cache' if source == 'disk' else 'memory'} "
+                                      f"for the {size}")
+        seconds = LookupTableRayCaster.build_estimate(occupancy_map, p.scan_theta_discretization)
+        return Preparation(True, f"range table: building it for the {size}, expected ~{seconds:.0f} s (cached for "
+                                 "the next start)")
 
     def prepare(self, occupancy_map: OccupancyMap, kind: str | None = None) -> RayCaster:
-        """The ray caster (``kind``, default ``ray_caster``) of a map: the slow part of ``set_map`` (a
-        range table built or loaded), without touching the model, so a caller may make it on another
-        thread and then call ``set_map(occupancy_map, caster)``."""
-        return make_ray_caster(kind or self.ray_caster_kind, occupancy_map, self.max_range_in(occupancy_map),
-                               self.scan_theta_discretization, self.range_table_lazy_cells)
+        """The ray caster (``kind``, default ``ray_caster``) of a map, casting up to ``table_range``:
+        the slow part of ``set_map`` (a range table built or loaded), without touching the model,
+        so a caller may make it on another thread and then call ``set_map(occupancy_map, caster)``."""
+        p = self.params
+        return make_ray_caster(kind or p.ray_caster, occupancy_map, self.table_range, p.scan_theta_discretization,
+                               p.range_table_lazy_cells)
 
-    def set_map(self, occupancy_map: OccupancyMap, ray_caster=None) -> None:
-        """Use a (new) map: builds its ray caster (``ray_caster``: a ready caster from ``prepare``, or
-        a caster name)."""
+    def set_map(self, occupancy_map: OccupancyMap, prepared=None) -> None:
+        """Use a (new) map with ``prepared``: a ready caster from ``prepare`` (None: built here; a
+        caster name: that caster built here)."""
+        if prepared is None or isinstance(prepared, str):
+            prepared = self.prepare(occupancy_map, prepared)
         self.map = occupancy_map
-        if ray_caster is None or isinstance(ray_caster, str):
-            ray_caster = self.prepare(occupancy_map, ray_caster)
-        self.ray_caster = ray_caster
+        self.ray_caster = prepared
         if self._fused:  # compile (or load from numba's cache) now, not on the first scan
             self.log_likelihood(np.zeros((1, 3)), np.zeros(1), np.zeros(1))
 
@@ -175,16 +278,28 @@ class BeamModel:
     def _fused(self) -> bool:
         return isinstance(self.ray_caster, LookupTableRayCaster) and self.ray_caster.use_numba
 
+    def scratch(self) -> AbstractContextManager:
+        """Temporary memory scope: the tiles of a tiled range table built inside it are given back."""
+        return nullcontext() if self.ray_caster is None else self.ray_caster.scratch()
+
+    def locality_order(self, xy) -> np.ndarray:
+        """Positions (K, 2) ordered by the range table's tile (tiled tables; else the identity)."""
+        if self.ray_caster is None:
+            return np.arange(len(np.asarray(xy).reshape(-1, 2)))
+        return self.ray_caster.locality_order(xy)
+
     # ------------------------------------------------------------------ evaluation
     def default_angles(self, num_beams: int) -> np.ndarray:
         """The course convention: beams evenly over ``scan_field_of_view`` centred on the heading."""
-        half = 0.5 * self.scan_field_of_view
+        half = 0.5 * self.params.scan_field_of_view
         return np.linspace(-half, half, num_beams)
 
     def expected_ranges(self, particles, angles, offsets=None) -> np.ndarray:
-        """Ray-cast ranges (metres), (N, B), from each particle's laser pose (``offsets`` (B, 3):
-        each beam cast from the laser pose ⊕ its offset, see the module docstring)."""
-        sensor = compose(np.atleast_2d(particles), self.laser_offset) if self.laser_offset.any() else particles
+        """Ray-cast ranges (map metres, at most ``table_range``), (N, B), from each particle's laser
+        pose (``offsets`` (B, 3): each beam cast from the laser pose ⊕ its offset, see the module
+        docstring)."""
+        laser = self.laser_offset
+        sensor = compose(np.atleast_2d(particles), laser) if laser.any() else particles
         if offsets is None:
             return self.ray_caster.cast(sensor, angles)
         offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
@@ -196,11 +311,18 @@ class BeamModel:
         return self.ray_caster.cast_rays(origins.reshape(-1, 3), np.tile(angles, len(origins))).reshape(
             len(origins), -1)
 
-    def to_cells(self, ranges_m) -> np.ndarray:
-        """Metres -> integer table indices in [0, z_max]; NaN/inf count as z_max."""
-        cells = np.asarray(ranges_m, dtype=float) * self.cells_per_metre
-        cells = np.where(np.isnan(cells), self.z_max, cells)
-        return np.rint(np.clip(cells, 0, self.z_max)).astype(np.intp)
+    def to_cells(self, ranges_m, k: int | None = None) -> np.ndarray:
+        """Map metres -> integer table indices in [0, k] (default k: table_width − 1); NaN/inf
+        and ranges beyond the row k count as k."""
+        k = self.z_max if k is None else int(k)
+        cells = np.asarray(ranges_m, dtype=float) * (1.0 / self.params.table_resolution)
+        cells = np.where(np.isnan(cells), k, cells)
+        return np.rint(np.clip(cells, 0, k)).astype(np.intp)
+
+    def measured_to_cells(self, ranges, k: int | None = None) -> np.ndarray:
+        """Measured ranges (lidar metres) -> table rows in [0, k]: lidar_scale_to_map_scale turns lidar
+        metres into map metres (the correction ``localization-calibrate`` estimates)."""
+        return self.to_cells(np.asarray(ranges, dtype=float) * self.params.lidar_scale_to_map_scale, k)
 
     def _inputs(self, particles, observation, angles, offsets=None):
         if self.map is None:
@@ -215,50 +337,55 @@ class BeamModel:
                 offsets = None  # no motion during the sweep (or unusable offsets): a rigid scan
         return particles, observation, np.asarray(angles, dtype=float).ravel(), offsets
 
-    def log_likelihood(self, particles, observation, angles=None, offsets=None) -> np.ndarray:
+    def log_likelihood(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """Squashed log weights (N,): sum over beams of log p(z|d), divided by squash_factor;
         −inf for particles off the map or in an occupied cell. ``offsets`` (B, 3): per-beam laser
-        motion (dx, dy, dθ) during a sweep, in the laser frame (deskew; see the module docstring)."""
+        motion (dx, dy, dθ) during a sweep, in the laser frame (deskew; see the module docstring);
+        ``range_max``: the scan's (lidar metres), z_max when ``laser_max_range`` <= 0."""
         particles, observation, angles, offsets = self._inputs(particles, observation, angles, offsets)
         if not self._fused:
-            return self.log_likelihood_numpy(particles, observation, angles, offsets)
+            return self.log_likelihood_numpy(particles, observation, angles, offsets, range_max)
+        p = self.params
+        k = self.z_max_row(range_max)
         self.ray_caster.prepare(particles, self.laser_offset)  # a large map's table: build the tiles in use
-        log_rows = np.ascontiguousarray(self._log_table[self.measured_to_cells(observation)])
+        log_rows = np.ascontiguousarray(self.log_table(k)[self.measured_to_cells(observation, k)])
         out = np.empty(particles.shape[0])
-        ox, oy, oth = (float(v) for v in self.laser_offset)
+        ox, oy, oth = p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw
         if offsets is None:
             du = dv = np.zeros(angles.size)
         else:
             angles = angles + offsets[:, 2]
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
-        _fused_kernel(particles, ox, oy, oth, *self.ray_caster.kernel_args(angles), du, dv,
-                      float(self.cells_per_metre), float(self.z_max), log_rows, float(self.squash_factor), out)
+        _fused_kernel(particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
+                      1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out)
         return out
 
-    def log_likelihood_numpy(self, particles, observation, angles=None, offsets=None) -> np.ndarray:
+    def log_likelihood_numpy(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """``log_likelihood`` in numpy over the caster's ``cast``: the reference of the fused kernel."""
         particles, observation, angles, offsets = self._inputs(particles, observation, angles, offsets)
-        z = self.measured_to_cells(observation)
-        d = self.to_cells(self.expected_ranges(particles, angles, offsets))
-        log_w = self._log_table[z[None, :], d].sum(axis=1) / self.squash_factor
+        k = self.z_max_row(range_max)
+        z = self.measured_to_cells(observation, k)
+        d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
+        log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
         log_w[self.map.is_occupied_or_outside(particles[:, :2])] = -np.inf
         return log_w
 
-    def evaluate(self, particles, observation, angles=None) -> np.ndarray:
+    def evaluate(self, particles, observation, angles=None, range_max=None) -> np.ndarray:
         """Weights (N,): Π_b p(z_b | d_b) ^ (1/squash_factor). Never NaN; 0 where impossible."""
         with np.errstate(under="ignore"):
-            return np.exp(self.log_likelihood(particles, observation, angles))
+            return np.exp(self.log_likelihood(particles, observation, angles, range_max=range_max))
 
 
 if HAVE_NUMBA:
     @njit(cache=True, nogil=True)
     def _fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
                       occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
-                      cells_per_metre, z_max, log_rows, squash_factor, out):  # pragma: no cover - compiled
+                      bins_per_metre, z_max, log_rows, squash_factor, out):  # pragma: no cover - compiled
         """out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for particles off the map
-        or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b;
-        (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, cells."""
+        or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b (columns
+        0 … z_max); (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, map
+        cells; ``bins_per_metre``: 1 / table_resolution."""
         n_bins = table.shape[1]
         h, w = occupied.shape
         n_beams = beam_f.size
@@ -298,7 +425,7 @@ if HAVE_NUMBA:
                        cells)
             total = 0.0
             for b in range(n_beams):
-                d = (cells[b] * resolution) * cells_per_metre  # metres, then as BeamModel.to_cells
+                d = (cells[b] * resolution) * bins_per_metre  # map metres, then table cells as BeamModel.to_cells
                 d = z_max if d > z_max else d
                 total += log_rows[b, int(np.rint(d))]
             out[i] = total / squash_factor

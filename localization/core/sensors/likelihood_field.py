@@ -12,10 +12,12 @@ capped at ``laser_likelihood_max_dist``; an end point off the map counts as that
 
     p(z_b | x) = z_hit · exp(−d_b² / (2 σ_hit²)) + z_rand / z_max
 
-with σ_hit = ``lf_sigma_hit`` (m), z_max = ``laser_max_range`` (m). As in nav2_amcl the Gaussian
-is *not* normalised (its peak is z_hit), so nav2's values of z_hit, z_rand, σ_hit mean the same
-here. Beams at or beyond z_max, and NaN/inf beams, are skipped (they say nothing about where
-an obstacle is). The same beams are skipped for every particle, so skipping never favours one.
+with σ_hit = ``lf_sigma_hit`` (m) and z_max (m) the sensor's range: ``laser_max_range`` when > 0,
+else the scan's ``range_max`` (``log_likelihood(..., range_max=)``), else ``UNKNOWN_RANGE_MAX``
+(``sensors.resolve_max_range``). As in nav2_amcl the Gaussian is *not* normalised (its peak is
+z_hit), so nav2's values of z_hit, z_rand, σ_hit mean the same here. Beams at or beyond z_max, and
+NaN/inf beams ("no return"), are skipped (they say nothing about where an obstacle is). The same
+beams are skipped for every particle, so skipping never favours one.
 
 Combination over beams: the product, as in the beam model and nav2's ``likelihood_field_prob``,
 evaluated as a sum of logs and squashed by the same ``squash_factor``:
@@ -32,7 +34,7 @@ Per-cell precomputation: the field stores each cell's capped distance quantised 
 
     q(cell) = round(d / Δ),   Δ = laser_likelihood_max_dist / 255   (≤ 4 mm at the 2 m default)
 
-and a 256-entry table ℓ[q] = log(z_hit·exp(−(qΔ)²/2σ²) + z_rand/z_max), so each beam costs one
+and a 256-entry table ℓ[q] = log(z_hit·exp(−(qΔ)²/2σ²) + z_rand/z_max) (one per z_max, cached), so each beam costs one
 byte look-up, one table look-up and one add; off the map q = 255 (the cap). 1 byte per cell
 keeps the field in cache and large maps small. q = 0 exactly on occupied cells (every other
 cell is at least one resolution away), so the same grid says which particles are in walls.
@@ -54,6 +56,7 @@ beam b's time, the same for every particle): the end point in the laser frame be
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -61,12 +64,14 @@ import numpy as np
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast.kernels import HAVE_NUMBA
+from localization.core.sensors import Preparation, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
 
 QUANT_MAX = 255  # the quantised distance of the cap (uint8)
 BAND_CELLS = 2_000_000  # cells per band of the distance transform (bounds its temporaries)
+UNKNOWN_RANGE_MAX = 30.0  # m: z_max when neither laser_max_range nor the scan gives one (a Hokuyo UST-10LX's)
 
 
 @dataclass(frozen=True)
@@ -77,7 +82,7 @@ class LikelihoodFieldParams:
     lf_z_rand: float = default("lf_z_rand")
     lf_sigma_hit: float = default("lf_sigma_hit")  # m
     laser_likelihood_max_dist: float = default("laser_likelihood_max_dist")  # m
-    laser_max_range: float = default("laser_max_range")  # m
+    laser_max_range: float = default("laser_max_range")  # m; <= 0: the scan's range_max
     do_beamskip: bool = default("do_beamskip")
     beam_skip_distance: float = default("beam_skip_distance")  # m
     beam_skip_threshold: float = default("beam_skip_threshold")
@@ -96,8 +101,8 @@ class LikelihoodFieldParams:
 
 
 class LikelihoodFieldModel:
-    """``LikelihoodFieldModel(**overrides)`` or ``LikelihoodFieldModel(params)``; the same
-    protocol as ``BeamModel``: ``set_map``, ``log_likelihood``, ``laser_offset``, ``max_range``."""
+    """``LikelihoodFieldModel(**overrides)`` or ``LikelihoodFieldModel(params)``; a
+    ``sensors.SensorModel``, as ``BeamModel``."""
 
     supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
 
@@ -109,34 +114,67 @@ class LikelihoodFieldModel:
         self.params = p = replace(params or LikelihoodFieldParams(), **overrides)
         if not (p.lf_z_hit >= 0 and p.lf_z_rand >= 0 and p.lf_z_hit + p.lf_z_rand > 0):
             raise ValueError(f"lf_z_hit ({p.lf_z_hit}) and lf_z_rand ({p.lf_z_rand}) must be >= 0, not both 0")
-        if not (p.lf_sigma_hit > 0 and p.laser_likelihood_max_dist > 0 and p.laser_max_range > 0
-                and p.squash_factor > 0):
-            raise ValueError("lf_sigma_hit, laser_likelihood_max_dist, laser_max_range and squash_factor must be > 0")
-        self.laser_offset = np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
+        if not (p.lf_sigma_hit > 0 and p.laser_likelihood_max_dist > 0 and p.squash_factor > 0):
+            raise ValueError("lf_sigma_hit, laser_likelihood_max_dist and squash_factor must be > 0")
+        if not math.isfinite(p.laser_max_range):
+            raise ValueError(f"laser_max_range must be finite (<= 0: the scan's range_max), got {p.laser_max_range}")
         self.use_numba = bool(use_numba) and HAVE_NUMBA
         self.map: OccupancyMap | None = None
         self.field: np.ndarray | None = None  # (H, W) uint8: q(cell), the quantised capped distance
         self.step = p.laser_likelihood_max_dist / QUANT_MAX  # m per quantum Δ
         q = np.arange(QUANT_MAX + 1)
-        # (256,) ℓ[q]; floored at log(tiny) so z_rand = 0 with a far end point is very unlikely, not impossible
-        self.log_table = np.maximum(self.log_p(q * self.step), np.log(np.finfo(float).tiny))
+        self._log_tables: dict = {}  # z_max -> (256,) ℓ[q]
         self.near_table = q * self.step < p.beam_skip_distance  # (256,) do_beamskip: end point near an obstacle
         self.last_beams_used: int | None = None  # beams used by the last evaluation (after max range / skipping)
         if occupancy_map is not None:
             self.set_map(occupancy_map)
 
+    # ------------------------------------------------------------------ the laser
+    @property
+    def laser_offset(self) -> np.ndarray:
+        """(3,) the laser pose (x, y, yaw) in base_link (a copy)."""
+        p = self.params
+        return np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
+
+    def set_laser_offset(self, offset) -> None:
+        """Use the laser pose ``offset`` (x m, y m, yaw rad) in base_link."""
+        x, y, yaw = (float(v) for v in np.asarray(offset, dtype=float).reshape(3))
+        self.params = replace(self.params, laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw)
+
     # ------------------------------------------------------------------ the field
     @property
     def max_range(self) -> float:
-        """Beams at or beyond this range (m) are skipped (z_max of the z_rand density)."""
-        return float(self.params.laser_max_range)
+        """z_max (m) when the scan gives no range_max: ``laser_max_range`` if > 0, else
+        ``UNKNOWN_RANGE_MAX``."""
+        return self.max_range_for(None)
 
-    def log_p(self, distance) -> np.ndarray:
-        """ℓ(d) = log(z_hit·exp(−d²/2σ²) + z_rand/z_max), d in metres (capped)."""
+    def max_range_for(self, range_max: float | None) -> float:
+        """z_max (m) for a scan with this ``range_max``: beams at or beyond it are skipped; the
+        uniform density is z_rand / z_max."""
+        return resolve_max_range(self.params.laser_max_range, range_max, UNKNOWN_RANGE_MAX)
+
+    def log_p(self, distance, z_max: float | None = None) -> np.ndarray:
+        """ℓ(d) = log(z_hit·exp(−d²/2σ²) + z_rand/z_max), d in metres (capped); z_max default ``max_range``."""
         p = self.params
+        z_max = self.max_range if z_max is None else float(z_max)
         d = np.minimum(np.asarray(distance, dtype=float), p.laser_likelihood_max_dist)
         with np.errstate(divide="ignore"):
-            return np.log(p.lf_z_hit * np.exp(-0.5 * (d / p.lf_sigma_hit) ** 2) + p.lf_z_rand / p.laser_max_range)
+            return np.log(p.lf_z_hit * np.exp(-0.5 * (d / p.lf_sigma_hit) ** 2) + p.lf_z_rand / z_max)
+
+    def log_table_for(self, z_max: float) -> np.ndarray:
+        """(256,) ℓ[q] for this z_max (cached); floored at log(tiny) so z_rand = 0 with a far end point
+        is very unlikely, not impossible."""
+        table = self._log_tables.get(z_max)
+        if table is None:
+            q = np.arange(QUANT_MAX + 1)
+            table = self._log_tables[z_max] = np.maximum(self.log_p(q * self.step, z_max),
+                                                         np.log(np.finfo(float).tiny))
+        return table
+
+    @property
+    def log_table(self) -> np.ndarray:
+        """ℓ[q] at ``max_range`` (a scan without range_max)."""
+        return self.log_table_for(self.max_range)
 
     def distance_field(self, occupancy_map: OccupancyMap) -> np.ndarray:
         """(H, W) float32: distance (m) of each cell centre to the nearest occupied cell centre, capped
@@ -168,6 +206,11 @@ class LikelihoodFieldModel:
         field[(field == 0) & ~occupancy_map.occupied] = 1  # only walls are 0 (a tiny cap could round to 0)
         return np.ascontiguousarray(field)
 
+    def preparation(self, occupancy_map: OccupancyMap) -> Preparation:
+        """The distance field is computed in ``prepare`` (a fraction of a second per million cells)."""
+        return Preparation(False, f"likelihood field: distance transform of the map {occupancy_map.width}x"
+                                  f"{occupancy_map.height} cells (capped at {self.params.laser_likelihood_max_dist} m)")
+
     def set_map(self, occupancy_map: OccupancyMap, prepared=None) -> None:
         """Use a (new) map: precompute the quantised distance field (or take ``prepared``, from
         ``prepare``); compile."""
@@ -183,13 +226,21 @@ class LikelihoodFieldModel:
         """Memory of the precomputed field (bytes): one per cell."""
         return 0 if self.field is None else int(self.field.nbytes)
 
+    def scratch(self) -> AbstractContextManager:
+        """No temporary memory: the field is whole."""
+        return nullcontext()
+
+    def locality_order(self, xy) -> np.ndarray:
+        """The identity: the field has no parts to keep together."""
+        return np.arange(len(np.asarray(xy).reshape(-1, 2)))
+
     # ------------------------------------------------------------------ evaluation
     def default_angles(self, num_beams: int) -> np.ndarray:
         """The course convention: beams evenly over ``scan_field_of_view`` centred on the heading."""
         half = 0.5 * self.params.scan_field_of_view
         return np.linspace(-half, half, num_beams)
 
-    def _inputs(self, particles, ranges, angles, offsets=None):
+    def _inputs(self, particles, ranges, angles, offsets=None, z_max=None):
         if self.map is None:
             raise RuntimeError("the sensor model has no map yet: call set_map() first")
         particles = np.ascontiguousarray(np.atleast_2d(np.asarray(particles, dtype=float)))
@@ -198,7 +249,7 @@ class LikelihoodFieldModel:
         if angles.size != ranges.size:
             raise ValueError(f"{ranges.size} ranges but {angles.size} angles")
         with np.errstate(invalid="ignore"):
-            used = np.isfinite(ranges) & np.isfinite(angles) & (ranges < self.max_range) & (ranges >= 0)
+            used = np.isfinite(ranges) & np.isfinite(angles) & (ranges < z_max) & (ranges >= 0)
         # end points in the laser frame, in map cells: e = laser + R(θ_l)·(z cos a, z sin a); a deskewed
         # sweep (offsets δ_b = (dx, dy, dθ) of the laser at beam b's time): (dx, dy) + z (cos, sin)(a + dθ)
         res = self.map.resolution
@@ -216,18 +267,21 @@ class LikelihoodFieldModel:
         ox, oy, yaw = self.map.origin
         return float(ox), float(oy), math.cos(yaw), math.sin(yaw), float(self.map.resolution), float(yaw)
 
-    def log_likelihood(self, particles, ranges, angles=None, offsets=None) -> np.ndarray:
+    def log_likelihood(self, particles, ranges, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """Squashed log weights (N,): Σ over used beams of ℓ(end point) / squash_factor;
         −inf for particles off the map or in an occupied cell. ``offsets`` (B, 3): per-beam laser
-        motion of a deskewed sweep (folded into the laser-frame end points: no extra cost)."""
+        motion of a deskewed sweep (folded into the laser-frame end points: no extra cost);
+        ``range_max``: the scan's (m), z_max when ``laser_max_range`` <= 0."""
         if not self.use_numba:
-            return self.log_likelihood_numpy(particles, ranges, angles, offsets)
-        particles, local = self._inputs(particles, ranges, angles, offsets)
+            return self.log_likelihood_numpy(particles, ranges, angles, offsets, range_max)
+        z_max = self.max_range_for(range_max)
+        particles, local = self._inputs(particles, ranges, angles, offsets, z_max)
         n = particles.shape[0]
         ox, oy, c, s, res, yaw = self._grid_frame()
         off = self.laser_offset
+        log_table = self.log_table_for(z_max)
         args = (particles, float(off[0]), float(off[1]), float(off[2]), ox, oy, c, s, res, yaw, self.field,
-                self.log_table, local[:, 0].copy(), local[:, 1].copy())
+                log_table, local[:, 0].copy(), local[:, 1].copy())
         out = np.empty(n)
         if not self.params.do_beamskip or local.shape[0] == 0:
             _lf_kernel(*args, out)
@@ -238,7 +292,7 @@ class LikelihoodFieldModel:
             _lf_beamskip_kernel(*args, self.near_table, per_beam, votes, out)
             mask = self._beam_mask(votes, int(np.isfinite(out).sum()))
             self.last_beams_used = int(mask.sum())
-            _masked_sum(per_beam, self.log_table, mask, out)
+            _masked_sum(per_beam, log_table, mask, out)
         out[np.isfinite(out)] /= self.params.squash_factor
         return out
 
@@ -253,9 +307,10 @@ class LikelihoodFieldModel:
             return np.ones(votes.size, dtype=bool)
         return mask
 
-    def log_likelihood_numpy(self, particles, ranges, angles=None, offsets=None) -> np.ndarray:
+    def log_likelihood_numpy(self, particles, ranges, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """``log_likelihood`` in numpy, (N, B) temporaries: the reference of the compiled kernels."""
-        particles, local = self._inputs(particles, ranges, angles, offsets)
+        z_max = self.max_range_for(range_max)
+        particles, local = self._inputs(particles, ranges, angles, offsets, z_max)
         ox, oy, c, s, res, yaw = self._grid_frame()
         off = self.laser_offset
         # laser pose of every particle, then in grid coordinates
@@ -280,14 +335,14 @@ class LikelihoodFieldModel:
         if self.params.do_beamskip and local.shape[0]:
             votes = (self.near_table[q] & ~bad[:, None]).sum(axis=0)
             mask = self._beam_mask(votes, int((~bad).sum()))
-        out = self.log_table[q[:, mask]].sum(axis=1) / self.params.squash_factor
+        out = self.log_table_for(z_max)[q[:, mask]].sum(axis=1) / self.params.squash_factor
         out[bad] = -np.inf
         return out
 
-    def evaluate(self, particles, ranges, angles=None) -> np.ndarray:
+    def evaluate(self, particles, ranges, angles=None, range_max=None) -> np.ndarray:
         """Weights (N,): Π_b p(z_b | x) ^ (1/squash_factor). Never NaN; 0 where impossible."""
         with np.errstate(under="ignore"):
-            return np.exp(self.log_likelihood(particles, ranges, angles))
+            return np.exp(self.log_likelihood(particles, ranges, angles, range_max=range_max))
 
 
 if HAVE_NUMBA:
