@@ -9,8 +9,9 @@ Usage::
 ``BAG``: a rosbag2 directory (sqlite3 or MCAP), a bare ``.db3`` / ``.mcap`` file, or a ROS 1
 ``.bag``. Every scan, odometry and initial-pose message goes, in bag-time order, through exactly
 what the node does with it: the duck-typed converters of ``localization.conversions`` and the
-``Localizer`` (``on_odometry``, ``on_scan``, ``set_initial_pose``). Stamps come from the
-messages, so the result does not depend on how fast the replay runs.
+``Localizer`` (``on_odometry``, ``on_scan``, ``set_initial_pose``), fed by the one loop the tuner
+and the benchmarks use too (``localization.eval.feed``). Stamps come from the messages, so the
+result does not depend on how fast the replay runs.
 
 Initial pose: ``--initial-pose``, else every ``/initialpose`` message of the bag (as the node
 would receive it), else global localization (``--global`` forces it).
@@ -21,13 +22,18 @@ geometry_msgs/PoseStamped, PoseWithCovarianceStamped or tf2_msgs/TFMessage.
 
 Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the current directory):
 
-- ``poses.csv``: ``t,x,y,theta``, one row per estimate the node would publish;
+- ``poses.csv``: ``t,x,y,theta``, one row per estimate the node would publish: the pose carried to
+  each odometry message's time, and a sensor-corrected estimate when it is newer than the row
+  before (t, scan clock, never goes backwards);
+- ``corrections.csv``: ``t,x,y,theta``, every sensor-corrected estimate at its scan's time;
 - ``metrics.json``: CT error statistics, heading error and time to converge (with truth),
   scan–map agreement, update timing, effective update rate (see ``localization.metrics``);
-- ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures;
+- ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures (agreement
+  of the estimate at each scan's time, t = that time on the scan clock, ``localization.eval.feed``);
 - ``trajectory.png`` (map, truth, estimate) and ``error.png`` (errors and agreement vs time);
 - with a reference track (``--reference``; by default when the bag has no ground truth): the
-  estimate scored against every scan matched to the map (``localization.eval.reference``):
+  estimate at each scan's time scored against every scan matched to the map
+  (``localization.eval.reference``; ``published_*``: the poses as published, interpolated):
   ``reference_error_m``, ``along_track_error_m``, ``cross_track_error_m``, ``best_lag_s`` ... in
   metrics.json, and ``reference.png`` (along/cross-track error vs time).
 
@@ -39,7 +45,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -53,9 +58,8 @@ from localization.core.localizer import Localizer
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.occupancy_map import load_map as load_occupancy_map
 from localization.core.parameters import Parameters
-from localization.core.scan import beam_angles
 from localization.eval import metrics as M
-from localization.eval.feed import Feeder
+from localization.eval.feed import START_FROM_EVENTS, START_GLOBAL, Feeder, InitialPose, make_scorer
 from localization.ros.conversions import (
     pose_from_msg,
     pose_from_pose_with_covariance,
@@ -123,6 +127,10 @@ class ReplayResult:
     particles_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
     particles: np.ndarray = field(default_factory=lambda: np.zeros(0))  # particle count (adaptive_particles)
     reference: object | None = None  # localization.eval.reference.ReferenceTrack, when computed
+    corrected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # s, scan clock: each correction's scan time
+    corrected_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # every sensor-corrected estimate
+    scan_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # s, scan clock: each scan's time
+    scan_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # the estimate at each scan's time
 
     @property
     def has_truth(self) -> bool:
@@ -139,35 +147,25 @@ def _strip(frame: str) -> str:
 
 
 class _Progress:
-    """A one-line progress bar on stderr (redrawn at most 10 times a second)."""
+    """The replay's progress bar on stderr (tqdm, ``localization.eval.progress``), in seconds of bag time."""
 
     def __init__(self, enabled: bool, start_ns: int, end_ns: int, label: str):
-        self.enabled = enabled
+        from localization.eval.progress import progress_bar
         self.start, self.span = start_ns, max(end_ns - start_ns, 1)
-        self.label = label
-        self.t_wall = time.perf_counter()
-        self.last = 0.0
+        self.done = 0.0
+        self.bar = progress_bar(total=round(self.span * 1e-9, 1), desc=label, unit="s", enabled=enabled,
+                                bar_format="{desc} {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} s of bag "
+                                           "[{elapsed}<{remaining}]")
 
-    def update(self, t_ns: int, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.perf_counter()
-        if not force and now - self.last < 0.1:
-            return
-        self.last = now
+    def update(self, t_ns: int) -> None:
         frac = min(max((t_ns - self.start) / self.span, 0.0), 1.0)
-        bag_s = frac * self.span * 1e-9
-        speed = bag_s / max(now - self.t_wall, 1e-9)
-        bar = "#" * int(frac * 30)
-        sys.stderr.write(f"\r{self.label} [{bar:<30}] {frac * 100:5.1f}% {bag_s:6.1f}/{self.span * 1e-9:.1f} s "
-                         f"bag time, {speed:4.1f}x real time")
-        sys.stderr.flush()
+        step = round(frac * self.span * 1e-9, 1) - self.done
+        if step > 0:
+            self.bar.update(step)
+            self.done += step
 
     def close(self) -> None:
-        if self.enabled:
-            self.update(self.start + self.span, force=True)
-            sys.stderr.write("\n")
-            sys.stderr.flush()
+        self.bar.close()
 
 
 def load_map(name_or_path) -> OccupancyMap:
@@ -240,60 +238,22 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
         localizer = Localizer(params)
         localizer.set_map(occupancy_map)
-        mount = (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw)
-        scorer = M.AgreementScorer(occupancy_map, mount, range_scale=params.lidar_scale_to_map_scale)
         topics = [scan_topic, odom_topic] + ([init_topic] if use_bag_initialpose else []) \
             + ([truth_topic] if truth_topic else [])
         progress = _Progress(opts.progress, bag.start_ns, bag.end_ns, opts.label or bag_label(opts.bag))
         bag_duration = (bag.end_ns - bag.start_ns) * 1e-9
-
-        feeder = Feeder(localizer)
-        log = feeder.log
+        if use_bag_initialpose:
+            start = START_FROM_EVENTS
+        elif opts.initial_pose is not None and not opts.force_global:
+            start = tuple(float(v) for v in opts.initial_pose)
+        else:
+            start = START_GLOBAL
+        feeder = Feeder(localizer, make_scorer(occupancy_map, params))
         truth_t, truth_poses = [], []
-        agree_t, agree = [], []
-        initialised = False
-        initial_pose = None
-        init_t = None  # stamp of the first initialisation
-        angles_cache: dict = {}
+        events = bag_events(bag, topics, scan_topic, odom_topic, init_topic if use_bag_initialpose else None,
+                            truth_topic, (parent, child), truth_t, truth_poses, progress=progress.update)
         try:
-            for m in bag.messages(topics):
-                progress.update(m.t_ns)
-                topic = m.topic
-                if topic == truth_topic:
-                    _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_poses)
-                    if topic not in (scan_topic, odom_topic, init_topic):
-                        continue
-                if topic == init_topic and use_bag_initialpose:
-                    pc = pose_from_pose_with_covariance(m.msg)
-                    feeder.initial_pose(pc.pose, pc.covariance, pc.stamp)
-                    if initial_pose is None:
-                        initial_pose, init_t = pc.pose, pc.stamp
-                    initialised = True
-                    continue
-                if topic == odom_topic:
-                    data = twist_from_odometry(m.msg)
-                elif topic == scan_topic:
-                    data = scan_from_msg(m.msg)
-                else:
-                    continue
-                if not initialised and not use_bag_initialpose:
-                    initial_pose, init_t = _initialise(localizer, opts, data.stamp), data.stamp
-                    initialised = True
-                if topic == odom_topic:
-                    feeder.odometry(data)
-                    continue
-                feeder.scan(data)
-                if opts.on_scan is not None:
-                    opts.on_scan(data, localizer)
-                current = localizer.estimate_at(localizer.scan_time(data))  # the pose when the scan was taken
-                if current is not None:
-                    key = (data.ranges.size, data.angle_min, data.angle_max, data.angle_increment)
-                    if key not in angles_cache:
-                        angles_cache[key] = beam_angles(*key)
-                    a = scorer.score(current.pose, data.ranges, angles_cache[key], data.range_min, data.range_max)
-                    if math.isfinite(a):
-                        agree_t.append(data.stamp)
-                        agree.append(a)
+            log = feeder.run(events, start, on_scan=opts.on_scan)
         except BagError as exc:
             raise ReplayError(str(exc)) from None
         finally:
@@ -309,38 +269,57 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
     order = np.argsort(truth_t_arr, kind="stable")
     counts["recoveries"] = localizer.recoveries
     est_t, est_poses = log.estimates()
+    corrected_t, corrected_poses = log.corrections()
+    scan_t, scan_poses = log.scan_track()
     res = ReplayResult(
         options=opts, bag_path=Path(opts.bag), map_path=map_path, occupancy_map=occupancy_map,
         est_t=est_t, est_poses=est_poses, truth_t=truth_t_arr[order], truth_poses=truth_p_arr[order],
-        agreement_t=np.asarray(agree_t, dtype=float), agreement=np.asarray(agree, dtype=float),
+        agreement_t=np.asarray(log.agreement_t, dtype=float), agreement=np.asarray(log.agreement, dtype=float),
         sensor_times=log.sensor_times, motion_times=log.motion_times, filter_time=log.filter_time,
         wall_time=time.perf_counter() - t_wall0, bag_duration=bag_duration, counts=counts,
-        initial_pose_source=init_source, initial_pose=initial_pose, init_t=init_t, scan_topic=scan_topic,
+        initial_pose_source=init_source, initial_pose=log.initial_pose, init_t=log.init_t, scan_topic=scan_topic,
         odom_topic=odom_topic,
         truth_source=(f"{truth_topic} ({parent} -> {child})" if truth_topic == "/tf" else truth_topic)
         if len(truth_t) else None,
         health=np.asarray(log.health, dtype=float),
-        particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float))
+        particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float),
+        corrected_t=corrected_t, corrected_poses=corrected_poses, scan_t=scan_t, scan_poses=scan_poses)
     if opts.reference or (opts.reference is None and not res.has_truth):
+        from localization.eval.progress import busy
         from localization.eval.reference import reference_for_bag
         try:
-            res.reference = reference_for_bag(opts.bag, occupancy_map, scan_topic, (
-                params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw), est_t, est_poses,
-                initial_pose, range_scale=params.lidar_scale_to_map_scale)
+            with busy("reference track", enabled=opts.progress) as say:  # the pass after the replay's bar
+                res.reference = reference_for_bag(
+                    opts.bag, occupancy_map, scan_topic,
+                    (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw), odom_topic=odom_topic,
+                    initial_pose=log.initial_pose, range_scale=params.lidar_scale_to_map_scale,
+                    scan_stamp=params.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
+                    log=say if opts.progress else None)
         except BagError as exc:
             raise ReplayError(str(exc)) from None
         res.wall_time = time.perf_counter() - t_wall0
     return res
 
 
-def _initialise(localizer: Localizer, opts: ReplayOptions, stamp: float):
-    """Initial pose from the command line, else global localization."""
-    if opts.initial_pose is not None and not opts.force_global:
-        pose = np.asarray(opts.initial_pose, dtype=float)
-        localizer.set_initial_pose(pose, None, stamp)
-        return pose
-    localizer.initialize_global(stamp)
-    return None
+def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | None, truth_topic: str | None,
+               truth_frames: tuple, truth_t: list, truth_poses: list, progress=None):
+    """A bag's filter input in bag-time order, converted as the node converts it: ``TwistData``
+    (odometry), ``ScanData`` (scans), ``InitialPose`` (``init_topic``; None: not read); the truth
+    (``truth_topic``, ``truth_frames`` = (parent, child)) is collected into ``truth_t`` /
+    ``truth_poses`` on the way; ``progress(t_ns)`` per message."""
+    parent, child = truth_frames
+    for m in bag.messages(topics):
+        if progress is not None:
+            progress(m.t_ns)
+        if m.topic == truth_topic:
+            _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_poses)
+        if m.topic == scan_topic:
+            yield scan_from_msg(m.msg)
+        elif m.topic == odom_topic:
+            yield twist_from_odometry(m.msg)
+        elif init_topic is not None and m.topic == init_topic:
+            pc = pose_from_pose_with_covariance(m.msg)
+            yield InitialPose(pc.stamp, np.asarray(pc.pose, dtype=float), pc.covariance)
 
 
 def _collect_truth(msg, msgtype: str, parent: str, child: str, out_t: list, out_p: list) -> None:
@@ -416,8 +395,12 @@ def compute_metrics(res: ReplayResult) -> dict:
         out.update(truth_decomposition(res.est_t, res.est_poses, res.truth_t, res.truth_poses))
     if res.reference is not None:
         from localization.eval.reference import reference_metrics
-        out.update(reference_metrics(res.reference, res.est_t, res.est_poses,
+        # the reference is per scan, at the scan's time: compared with the estimate at that time
+        out.update(reference_metrics(res.reference, res.scan_t, res.scan_poses,
                                      res.truth_t if res.has_truth else None, res.truth_poses))
+        published = reference_metrics(res.reference, res.est_t, res.est_poses)  # the poses as published
+        out["published_reference_error_m"] = published["reference_error_m"]
+        out["published_along_track_error_m"] = published["along_track_error_m"]
     return out
 
 
@@ -439,7 +422,7 @@ def default_out_dir(bag: Path) -> Path:
 
 
 def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool = True) -> dict:
-    """poses.csv, metrics.json, agreement.csv, errors.csv (with truth), trajectory.png, error.png."""
+    """poses.csv, corrections.csv, metrics.json, agreement.csv, errors.csv (with truth), trajectory.png, error.png."""
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -452,6 +435,12 @@ def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool =
         for t, (x, y, th) in zip(res.est_t, res.est_poses):
             w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
     files["poses"] = out_dir / "poses.csv"
+    with open(out_dir / "corrections.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t", "x", "y", "theta"])
+        for t, (x, y, th) in zip(res.corrected_t, res.corrected_poses):
+            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
+    files["corrections"] = out_dir / "corrections.csv"
     with open(out_dir / "agreement.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t", "agreement"])
@@ -469,17 +458,21 @@ def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool =
     files["metrics"] = out_dir / "metrics.json"
     if plots:
         from localization.eval.plots import plot_errors, plot_trajectory
+        from localization.eval.reference import track_errors
         title = res.options.label or bag_label(res.bag_path)
         files["trajectory"] = plot_trajectory(out_dir / "trajectory.png", res.occupancy_map, res.est_poses,
                                               res.truth_poses if res.has_truth else None, res.initial_pose,
-                                              title=title)
+                                              title=title, reference_poses=None if res.reference is None
+                                              else res.reference.good_track()[1])
         t0 = res.init_t if res.init_t is not None else (
             float(res.est_t[0]) if len(res.est_t) else (float(res.agreement_t[0]) if len(res.agreement_t) else 0.0))
         files["error"] = plot_errors(out_dir / "error.png", t0,
                                      cmp.t if cmp is not None else None, cmp.ct_error if cmp is not None else None,
                                      cmp.heading_error if cmp is not None else None,
                                      res.agreement_t, res.agreement, title=title,
-                                     particles_t=res.particles_t, particles=res.particles)
+                                     particles_t=res.particles_t, particles=res.particles,
+                                     track=track_errors(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
+                                     if res.has_truth else None)
         if res.reference is not None:
             from localization.eval.reference import plot_reference
             files["reference"] = plot_reference(out_dir / "reference.png", res.reference, res.est_t, res.est_poses,

@@ -2,17 +2,21 @@
 
 A *trial* draws one value per entry of the search space (a YAML file naming parameters of the
 table, ``config/tune_space.yaml``), lays them over the starting parameters, replays every bag
-through the core (``Feeder`` → ``Localizer``, the messages read once per worker) and scores it.
+through the core (``Feeder.run`` → ``Localizer``, the loop ``localization-replay`` uses; the
+messages read once per worker) and scores it.
 For bag b::
 
     s_b = e_b + P_lost · [lost_b] + W_time · max(0, ρ_b − 1)
 
     e_b     mean position (CT) error (m) of the published estimates against the bag's ground truth
             (``/tf`` map → base_link, what simulated bags carry); without truth (``score_without_truth``)
-            the mean position error (m) against the bag's reference track — every scan matched to the
-            map by the correlative scan matcher (``localization.eval.reference``), built once per bag
-            before the study, seeded by the starting parameters' estimate — or, when no reference can
-            be built, 1 − median scan–map agreement of the estimates (in [0, 1], not metres)
+            the mean position error (m) of the estimate at each scan's time (``FeedLog.scan_track``, as
+            in localization-replay's reference figures) against the bag's reference track — every scan
+            matched to the map by the correlative scan matcher (``localization.eval.reference``), built once per bag
+            before the study from the bag's scans and odometry alone — or, when no reference can
+            be built, 1 − median scan–map agreement of the estimate at each scan's time (in [0, 1], not
+            metres; ``feed.make_scorer`` of the starting parameters: their laser mount and lidar range
+            scale, as localization-replay scores)
     lost_b  the filter re-spread its particles (recoveries > 0), or the last scored estimate is more
             than ``LOST_FINAL_ERROR_M`` (1 m) from the truth (or reference), or the bag was cut for
             being too slow
@@ -46,24 +50,20 @@ from localization.bags import BagError, open_bag
 from localization.core.health import AgreementScorer
 from localization.core.localizer import Localizer
 from localization.core.occupancy_map import OccupancyMap
+from localization.core.odometry import TwistData
 from localization.core.parameters import BY_NAME, ParameterError, Parameters
 from localization.core.paths import config_dir, resolve_params_path
-from localization.core.scan import ScanData, beam_angles
+from localization.core.scan import ScanData
 from localization.eval import metrics as M
-from localization.eval.feed import Feeder
-from localization.eval.replay import (
-    ReplayError,
-    _collect_truth,
-    check_topics,
-    load_map,
-)
-from localization.ros.conversions import pose_from_pose_with_covariance, scan_from_msg, twist_from_odometry
+from localization.eval.feed import START_FROM_EVENTS, START_GLOBAL, Feeder, FeedLog, InitialPose, make_scorer
+from localization.eval.replay import ReplayError, bag_events, check_topics, load_map
 
 LOST_FINAL_ERROR_M = 1.0  # m: a last estimate further than this from the truth counts as lost
 NO_ESTIMATE_ERROR_M = 10.0  # m: the error of a bag that produced no estimate at all
 MIN_REFERENCE_MATCHES = 10  # good scan matches a reference track needs to be used
 DEFAULT_STUDY = "localization-tune"
 BASELINE_ATTR = "baseline"  # user attribute of the enqueued trial that evaluates the starting parameters
+DUPLICATE_ATTR = "repeat_of"  # user attribute of a trial whose parameters an earlier trial evaluated: its number
 
 
 class TuneError(RuntimeError):
@@ -201,13 +201,6 @@ def space_from_dict(doc: dict, where: str = "search space") -> list[SpaceEntry]:
 
 
 @dataclass
-class InitialPose:
-    stamp: float
-    pose: np.ndarray
-    covariance: np.ndarray | None
-
-
-@dataclass
 class BagData:
     """One bag's filter input in stamp order (TwistData, ScanData, InitialPose) and its truth."""
 
@@ -242,20 +235,11 @@ def load_bag(path, *, scan_topic: str = "/scan", odom_topic: str = "/odom", init
                                                  initialpose_topic, bag_initial_pose=initial_pose is None)
         topics = [scan_topic, odom_topic] + ([initialpose_topic] if use_bag_init else []) \
             + ([truth_topic] if truth_topic else [])
-        events: list = []
         truth_t: list = []
         truth_p: list = []
         try:
-            for m in bag.messages(topics):
-                if m.topic == truth_topic:
-                    _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_p)
-                if m.topic == scan_topic:
-                    events.append(scan_from_msg(m.msg))
-                elif m.topic == odom_topic:
-                    events.append(twist_from_odometry(m.msg))
-                elif m.topic == initialpose_topic and use_bag_init:
-                    pc = pose_from_pose_with_covariance(m.msg)
-                    events.append(InitialPose(pc.stamp, np.asarray(pc.pose, dtype=float), pc.covariance))
+            events = list(bag_events(bag, topics, scan_topic, odom_topic, initialpose_topic if use_bag_init else None,
+                                     truth_topic, (parent, child), truth_t, truth_p))
         except BagError as exc:
             raise ReplayError(str(exc)) from None
         duration = (bag.end_ns - bag.start_ns) * 1e-9
@@ -305,40 +289,19 @@ def _quiet_logger() -> logging.Logger:
 
 
 def replay_bag(bag: BagData, occupancy_map: OccupancyMap, params: Parameters, *, max_filter_time: float = math.inf,
-               scorer: AgreementScorer | None = None):
-    """Feed one bag to a fresh Localizer. Returns (FeedLog, localizer, agreement list, cut)."""
+               scorer: AgreementScorer | None = None) -> tuple[FeedLog, Localizer]:
+    """Feed one bag to a fresh Localizer through ``Feeder.run`` (as localization-replay does): its
+    initial poses, else ``bag.start_pose``, else global localization. Returns (FeedLog, localizer);
+    with a ``scorer`` the log holds each scan's agreement at the scan's time; ``log.cut`` when the
+    filter time exceeded ``max_filter_time``."""
     localizer = Localizer(params, logger=_quiet_logger())
     localizer.set_map(occupancy_map)
-    feeder = Feeder(localizer)
-    agreement: list = []
-    angles: dict = {}
-    initialised = any(isinstance(e, InitialPose) for e in bag.events)
-    cut = False
-    for ev in bag.events:
-        if isinstance(ev, InitialPose):
-            feeder.initial_pose(ev.pose, ev.covariance, ev.stamp)
-            continue
-        if not initialised:
-            if bag.start_pose is not None:
-                localizer.set_initial_pose(np.asarray(bag.start_pose, dtype=float), None, ev.stamp)
-            else:
-                localizer.initialize_global(ev.stamp)
-            initialised = True
-        if isinstance(ev, ScanData):
-            est = feeder.scan(ev)
-            if scorer is not None and est is not None:
-                key = (ev.ranges.size, ev.angle_min, ev.angle_max, ev.angle_increment)
-                if key not in angles:
-                    angles[key] = beam_angles(*key)
-                a = scorer.score(localizer.estimate.pose, ev.ranges, angles[key], ev.range_min, ev.range_max)
-                if math.isfinite(a):
-                    agreement.append(a)
-            if feeder.log.filter_time > max_filter_time:
-                cut = True
-                break
-        else:
-            feeder.odometry(ev)
-    return feeder.log, localizer, agreement, cut
+    if any(isinstance(e, InitialPose) for e in bag.events):
+        start = START_FROM_EVENTS
+    else:
+        start = bag.start_pose if bag.start_pose is not None else START_GLOBAL
+    log = Feeder(localizer, scorer).run(bag.events, start, max_filter_time=max_filter_time)
+    return log, localizer
 
 
 def score_without_truth(bag: BagData, est_t: np.ndarray, est_poses: np.ndarray,
@@ -346,8 +309,9 @@ def score_without_truth(bag: BagData, est_t: np.ndarray, est_poses: np.ndarray,
     """The error figure of a bag without ground truth: (error, source, final error).
 
     With a reference track (``bag.reference``): the mean position error (m) of the estimates
-    against it, and the last one. Without: 1 − median scan–map agreement of the estimates (0 = every
-    beam endpoint on a wall; a lost filter scores near 1; ``agreement`` is then filled by the replay).
+    (``est_t``, ``est_poses``: the estimate at each scan's time) against it, and the last one.
+    Without: 1 − median scan–map agreement of the estimates (0 = every beam endpoint on a wall; a
+    lost filter scores near 1; ``agreement`` is then filled by the replay).
     """
     if bag.reference is not None:
         from localization.eval.reference import track_errors
@@ -362,16 +326,21 @@ def score_without_truth(bag: BagData, est_t: np.ndarray, est_poses: np.ndarray,
 
 
 def build_bag_reference(bag: BagData, occupancy_map: OccupancyMap, params: Parameters) -> tuple | None:
-    """The reference track of a bag (good matches only), seeded by ``params``' estimate; None when
-    the scan matcher gives fewer than MIN_REFERENCE_MATCHES good matches."""
+    """The reference track of a bag (good matches only): its scans matched to the map along its
+    odometry (``localization.eval.reference``, independent of the filter), from the bag's start
+    pose or first initial pose (else a global search), with ``params``' laser mount, range scale
+    and scan stamp convention; None when fewer than MIN_REFERENCE_MATCHES matches are good."""
     from localization.eval.reference import build_reference
 
-    log, _, _, _ = replay_bag(bag, occupancy_map, params)
-    est_t, est_poses = log.estimates()
     scans = [e for e in bag.events if isinstance(e, ScanData)]
-    ref = build_reference(scans, occupancy_map, (params.laser_offset_x, params.laser_offset_y,
-                                                 params.laser_offset_yaw), est_t, est_poses, bag.start_pose,
-                          range_scale=params.lidar_scale_to_map_scale)
+    odometry = [e for e in bag.events if isinstance(e, TwistData)]
+    first = next((e.pose for e in bag.events if isinstance(e, InitialPose)), None)
+    start = bag.start_pose if bag.start_pose is not None else first
+    ref = build_reference(scans, occupancy_map, (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
+                          (np.array([e.stamp for e in odometry], dtype=float),
+                           np.array([(e.vx, e.vy, e.wz) for e in odometry], dtype=float).reshape(-1, 3)),
+                          start, range_scale=params.lidar_scale_to_map_scale, scan_stamp=params.scan_stamp,
+                          scan_stamp_offset=params.scan_stamp_offset)
     t, poses = ref.good_track()
     if len(t) < MIN_REFERENCE_MATCHES:
         return None
@@ -385,11 +354,10 @@ def evaluate_bag(bag: BagData, occupancy_map: OccupancyMap, params: Parameters, 
     duration = max(bag.duration, 1e-3)
     need_agreement = not bag.has_truth and bag.reference is None
     if need_agreement and scorer is None:
-        scorer = AgreementScorer(occupancy_map, (params.laser_offset_x, params.laser_offset_y,
-                                                 params.laser_offset_yaw))
-    log, localizer, agreement, cut = replay_bag(bag, occupancy_map, params,
-                                                max_filter_time=w.max_realtime * duration,
-                                                scorer=scorer if need_agreement else None)
+        scorer = make_scorer(occupancy_map, params)
+    log, localizer = replay_bag(bag, occupancy_map, params, max_filter_time=w.max_realtime * duration,
+                                scorer=scorer if need_agreement else None)
+    cut = log.cut
     est_t, est_poses = log.estimates()
     final_error = None
     if bag.has_truth:
@@ -401,7 +369,7 @@ def evaluate_bag(bag: BagData, occupancy_map: OccupancyMap, params: Parameters, 
         else:
             error = NO_ESTIMATE_ERROR_M
     else:
-        error, source, final_error = score_without_truth(bag, est_t, est_poses, agreement)
+        error, source, final_error = score_without_truth(bag, *log.scan_track(), log.agreement)
     if not len(est_t) and bag.has_truth:
         error = NO_ESTIMATE_ERROR_M
     rho = log.filter_time / duration
@@ -462,11 +430,38 @@ def make_storage(url: str):
 def make_study(cfg: TuneConfig, worker: int = 0):
     import optuna
 
-    sampler = optuna.samplers.TPESampler(seed=cfg.seed + 1000 * worker, constant_liar=True)
+    storage = make_storage(cfg.storage)
+    # a resumed study seeds its sampler past the trials it has: the same seed again would draw the
+    # same first (random) parameter sets again
+    done = _finished_trials(storage, cfg.study)
+    sampler = optuna.samplers.TPESampler(seed=cfg.seed + 1000 * worker + 100_003 * done, constant_liar=True)
     pruner = (optuna.pruners.PercentilePruner(75.0, n_startup_trials=5, n_warmup_steps=0) if cfg.prune
               else optuna.pruners.NopPruner())
-    return optuna.create_study(storage=make_storage(cfg.storage), study_name=cfg.study, direction="minimize",
+    return optuna.create_study(storage=storage, study_name=cfg.study, direction="minimize",
                                sampler=sampler, pruner=pruner, load_if_exists=True)
+
+
+def _finished_trials(storage, study_name: str) -> int:
+    """Finished trials of a study in ``storage`` (0 when there is no such study yet)."""
+    try:
+        study_id = storage.get_study_id_from_name(study_name)
+    except KeyError:
+        return 0
+    return sum(t.state.is_finished() for t in storage.get_all_trials(study_id, deepcopy=False))
+
+
+def _n_finished(study) -> int:
+    return sum(t.state.is_finished() for t in study.get_trials(deepcopy=False))
+
+
+def earlier_trial_with(study, params: dict, number: int):
+    """A complete trial before ``number`` that evaluated exactly ``params`` (None if there is none)."""
+    import optuna
+
+    for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+        if t.number != number and t.params == params and DUPLICATE_ATTR not in t.user_attrs:
+            return t
+    return None
 
 
 def start_values(cfg: TuneConfig) -> dict:
@@ -549,9 +544,9 @@ class Objective:
                      for b, p in zip(cfg.bags, poses)]
         for bag, ref in zip(self.bags, cfg.references or [None] * len(self.bags)):
             bag.reference = ref
-        # truth-free scoring always projects scans with the starting laser offset (tuned offsets must
-        # not move the yardstick)
-        self.scorer = AgreementScorer(self.map, (start.laser_offset_x, start.laser_offset_y, start.laser_offset_yaw))
+        # truth-free scoring always projects scans with the starting laser mount and range scale (tuned
+        # values must not move the yardstick)
+        self.scorer = make_scorer(self.map, start)
 
     def params_of(self, values: dict) -> Parameters:
         merged = dict(self.cfg.start)
@@ -570,6 +565,14 @@ class Objective:
             trial.set_user_attr("invalid", str(exc))
             raise optuna.TrialPruned(str(exc)) from None
         trial.set_user_attr("worker_pid", os.getpid())
+        same = earlier_trial_with(trial.study, trial.params, trial.number)
+        if same is not None:  # evaluated already (a resumed or shared study): its value, not a re-run
+            for key, value in same.user_attrs.items():
+                if key not in (BASELINE_ATTR, "worker_pid"):
+                    trial.set_user_attr(key, value)
+            trial.set_user_attr(DUPLICATE_ATTR, same.number)
+            trial.set_user_attr("wall_s", 0.0)
+            return float(same.value)
         t0 = time.perf_counter()
         scores = []
         for k, bag in enumerate(self.bags):
@@ -680,7 +683,9 @@ def print_trial(study, trial) -> None:
     wall = trial.user_attrs.get("wall_s")
     sys.stderr.write(f"trial {trial.number:4d}: {value:>8} (best {best})"
                      + (f" {wall:.1f} s" if wall is not None else "")
-                     + (" [baseline]" if trial.user_attrs.get(BASELINE_ATTR) else "") + "\n")
+                     + (" [baseline]" if trial.user_attrs.get(BASELINE_ATTR) else "")
+                     + (f" [same parameters as trial {trial.user_attrs[DUPLICATE_ATTR]}: not re-run]"
+                        if DUPLICATE_ATTR in trial.user_attrs else "") + "\n")
     sys.stderr.flush()
 
 
@@ -689,32 +694,63 @@ def split_trials(n_trials: int, jobs: int) -> list[int]:
     return [n_trials // jobs + (1 if k < n_trials % jobs else 0) for k in range(jobs)]
 
 
-def run_workers(cfg: TuneConfig, n_trials: int, jobs: int = 1, progress: bool = False):
+def run_workers(cfg: TuneConfig, n_trials: int, jobs: int = 1, progress: bool = False, bar: bool = False):
     """Create (or load) the study, queue the baseline, run ``n_trials`` trials over ``jobs`` worker
-    processes (each its own Python: the filter is CPU-bound) and return the study."""
+    processes (each its own Python: the filter is CPU-bound) and return the study. ``progress``:
+    what happens on stderr (reference tracks, then one line per trial, or with ``bar`` a tqdm bar
+    of the trials instead of the lines)."""
+    from localization.eval.progress import busy, progress_bar
     _quiet_optuna()
     study = make_study(cfg)
     if cfg.references is None:
-        prepare_references(cfg, log=_stderr if progress else None)
+        with busy("reference tracks", enabled=progress and bar) as say:
+            prepare_references(cfg, log=say if progress else None)
     enqueue_baseline(study, cfg)
     shares = [n for n in split_trials(n_trials, max(1, jobs)) if n > 0]
+    lines = progress and not bar
+    trials_bar = progress_bar(total=n_trials, desc="trials", unit="trial", enabled=progress and bar)
+    before = _n_finished(study)
     if len(shares) <= 1:
-        run_worker(cfg, 0, n_trials, [print_trial] if progress else [])
+        try:
+            run_worker(cfg, 0, n_trials, ([print_trial] if lines else []) + [_BarCallback(trials_bar)])
+        finally:
+            trials_bar.close()
         return study
     ctx = multiprocessing.get_context("spawn")
-    procs = [ctx.Process(target=_worker_main, args=(cfg, k, n, progress), name=f"tune-worker-{k}")
+    procs = [ctx.Process(target=_worker_main, args=(cfg, k, n, lines), name=f"tune-worker-{k}")
              for k, n in enumerate(shares)]
     for p in procs:
         p.start()
     with GracefulStop() as stop:  # the workers get the signal too and stop after their running trial
         for p in procs:
-            p.join()
+            while p.is_alive():
+                p.join(1.0)
+                if not trials_bar.disable:  # the workers' finished trials, read from the shared study
+                    done = _n_finished(study) - before
+                    trials_bar.update(max(0, min(done, n_trials) - trials_bar.n))
+    trials_bar.close()
     if stop.requested:
         raise KeyboardInterrupt
     failed = [p.name for p in procs if p.exitcode not in (0, None)]
     if failed:
         raise TuneError(f"worker process(es) {', '.join(failed)} failed (see the messages above)")
     return study
+
+
+class _BarCallback:
+    """A study callback advancing a progress bar per finished trial, the best value beside it."""
+
+    def __init__(self, bar):
+        self.bar = bar
+
+    def __call__(self, study, trial) -> None:  # noqa: ARG002 - an Optuna callback
+        if self.bar.disable:
+            return
+        try:
+            self.bar.set_postfix_str(f"best {study.best_value:.4f}", refresh=False)
+        except ValueError:
+            pass
+        self.bar.update(1)
 
 
 def _source(bag: BagData) -> str:

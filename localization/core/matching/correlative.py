@@ -15,8 +15,13 @@ Score of a pose: the mean likelihood of its endpoints (``grids.likelihood_grid``
 
 1. Search (in the grid frame, whole cells): rotations θ_j = θ_seed + j Δθ (|j| ≤ J), and for each
    the endpoints rounded to cells once; translations are then whole-cell shifts (du, dv), |du|, |dv| ≤ W.
+   The rotation step is sized so that the farthest endpoint moves at most one cell per step::
+
+       Δθ = min(Δθ_max, res / max_i |q_i|)      (rad; res in m, |q_i| in m; ``angle_step`` fixes it)
+
    Coarse level: blocks of k × k shifts scored on the max-pooled grid (an upper bound of every
-   fine score in the block); blocks sorted by bound are expanded at full resolution until no
+   fine score in the block, the grid padded on both sides so that it bounds blocks straddling
+   either edge of the map); blocks sorted by bound are expanded at full resolution until no
    remaining bound beats the best fine score (branch and bound: the result equals the exhaustive
    search over the whole window). Every valid beam is used at both levels (no decimation unless
    ``max_beams`` says so), so the bound is exact.
@@ -44,7 +49,7 @@ import numpy as np
 
 from localization.core.geometry import wrap_angle
 from localization.core.matching import kernels as K
-from localization.core.matching.grids import likelihood_grid, pooled_likelihood_grid, signed_distance
+from localization.core.matching.grids import likelihood_grid, pool_pad, pooled_likelihood_grid, signed_distance
 from localization.core.occupancy_map import OccupancyMap
 
 
@@ -54,7 +59,8 @@ class MatcherConfig:
 
     window_xy: float = 0.4  # m: search ± this around the seed in x and y
     window_theta: float = 0.2  # rad: search ± this around the seed heading
-    angle_step: float = 0.006  # rad between candidate rotations (~1 cell at 8 m)
+    angle_step: float | None = None  # rad between candidate rotations; None: sized per scan (module doc, step 1)
+    max_angle_step: float = 0.02  # rad: the coarsest sized step (every endpoint within 50 cells of the base)
     coarse_step: int = 4  # cells per side of a coarse block
     sigma: float = 0.075  # m: width of the endpoint likelihood
     max_range: float = 30.0  # m: beams beyond are not used
@@ -81,6 +87,7 @@ class MatchResult:
     num_beams: int  # valid beams used
     refined: bool  # the Gauss–Newton finish was applied
     inlier_fraction: float  # beams ending within 2 σ of a wall face at the final pose
+    angle_step: float = math.nan  # rad between the candidate rotations searched
 
     @property
     def std_xy_max(self) -> float:
@@ -127,7 +134,8 @@ class CorrelativeMatcher:
         c = self.config
         self.res = occupancy_map.resolution
         self.L = likelihood_grid(occupancy_map, c.sigma)
-        self.P = pooled_likelihood_grid(occupancy_map, c.sigma, c.coarse_step)
+        self.P = pooled_likelihood_grid(occupancy_map, c.sigma, c.coarse_step)  # padded by pool_pad on the low side
+        self.pad = pool_pad(c.coarse_step)
         self.sdf = signed_distance(occupancy_map)
         self.yaw0 = occupancy_map.origin[2]
 
@@ -157,32 +165,22 @@ class CorrelativeMatcher:
         wxy = c.window_xy if window_xy is None else window_xy
         wth = c.window_theta if window_theta is None else window_theta
         W = max(1, int(math.ceil(wxy / self.res)))
-        J = max(0, int(math.ceil(wth / c.angle_step)))
+        step = self.angle_step_for(qg)
+        J = max(0, int(math.ceil(wth / step)))
         g0 = self._to_grid(seed)
-        phis = g0[2] + np.arange(-J, J + 1) * c.angle_step
-        cols, rows = self._cells(g0, phis, qg)
-
-        # coarse level: blocks of k x k shifts, bounded on the pooled grid
-        k = c.coarse_step
-        starts = np.arange(-W, W + 1, k)
-        jj, uu, vv = np.meshgrid(np.arange(len(phis)), starts, starts, indexing="ij")
-        cand_j, cand_u, cand_v = (a.ravel().astype(np.int64) for a in (jj, uu, vv))
-        bounds = K.score_candidates(self.P, cols, rows, cand_j, cand_u, cand_v)
-        order = np.argsort(-bounds, kind="stable")
-        best, bj, bu, bv = K.branch_and_bound(self.L, cols, rows, cand_j[order], cand_u[order], cand_v[order],
-                                              bounds[order], k, W)
+        phis = g0[2] + np.arange(-J, J + 1) * step
+        best, bj, bu, bv, cols, rows = self.search(qg, g0, phis, W)
         at_edge = abs(bu) == W or abs(bv) == W or (J > 0 and abs(bj - J) == J)
 
         # covariance from the score distribution around the peak
-        cov_g = self._covariance(cols, rows, phis, bj, bu, bv)
+        cov_g = self._covariance(cols, rows, phis, bj, bu, bv, step)
         peak = np.array([g0[0] + bu, g0[1] + bv, phis[bj]])
 
         refined = False
         final = peak
         if c.refine:
-            ref = self._refine(peak, qg)
-            if ref is not None and np.all(np.abs(ref[:2] - peak[:2]) <= 1.0) \
-                    and abs(ref[2] - peak[2]) <= max(c.angle_step, 1e-9):
+            ref = self._refine(peak, qg, step)
+            if ref is not None and np.all(np.abs(ref[:2] - peak[:2]) <= 1.0) and abs(ref[2] - peak[2]) <= step:
                 final, refined = ref, True
 
         pose = self._to_world(final)
@@ -195,7 +193,36 @@ class CorrelativeMatcher:
         worst = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0))
         return MatchResult(pose=pose, laser_pose=laser, score=float(best), covariance=cov,
                            ambiguous=bool(worst > c.ambiguous_std or at_edge), at_window_edge=bool(at_edge),
-                           num_beams=n, refined=refined, inlier_fraction=inliers)
+                           num_beams=n, refined=refined, inlier_fraction=inliers, angle_step=step)
+
+    def angle_step_for(self, qg) -> float:
+        """Rotation step (rad) for base-frame endpoints ``qg`` (cells): the farthest moves ≤ 1 cell
+        per step, Δθ = min(max_angle_step, 1 / max_i |q_i|) (``angle_step`` when the config fixes it)."""
+        c = self.config
+        if c.angle_step is not None:
+            return float(c.angle_step)
+        far = float(np.sqrt((np.asarray(qg, dtype=float) ** 2).sum(axis=1).max())) if len(qg) else 0.0
+        return float(c.max_angle_step) if far <= 1.0 / c.max_angle_step else 1.0 / far
+
+    def coarse_bounds(self, cols, rows, cand_j, cand_u, cand_v) -> np.ndarray:
+        """Upper bound of the fine score over each block of k × k shifts starting at (cand_u, cand_v)
+        (the pooled grid, looked up through its low-side padding)."""
+        return K.score_candidates(self.P, cols, rows, cand_j, cand_u + self.pad, cand_v + self.pad)
+
+    def search(self, qg, g0, phis, W: int):
+        """Branch and bound over the rotations ``phis`` (grid frame, rad) and the whole-cell shifts
+        |du|, |dv| ≤ W of the endpoints ``qg`` (cells, base frame), the base at grid pose ``g0``.
+        Returns (best score, j, du, dv, cols, rows): the same best as the exhaustive search."""
+        cols, rows = self._cells(g0, phis, qg)
+        k = self.config.coarse_step
+        starts = np.arange(-W, W + 1, k)
+        jj, uu, vv = np.meshgrid(np.arange(len(phis)), starts, starts, indexing="ij")
+        cand_j, cand_u, cand_v = (a.ravel().astype(np.int64) for a in (jj, uu, vv))
+        bounds = self.coarse_bounds(cols, rows, cand_j, cand_u, cand_v)
+        order = np.argsort(-bounds, kind="stable")
+        best, bj, bu, bv = K.branch_and_bound(self.L, cols, rows, cand_j[order], cand_u[order], cand_v[order],
+                                              bounds[order], k, W)
+        return best, bj, bu, bv, cols, rows
 
     def score(self, ranges, angles, mount, pose, range_scale: float = 1.0) -> float:
         """Mean endpoint likelihood S of a given base pose (the discrete score of the search)."""
@@ -216,6 +243,7 @@ class CorrelativeMatcher:
         if len(q) < 20:
             return None
         qg = q / self.res
+        step_max = self.angle_step_for(qg)
         g = np.append(self._to_grid(laser_pose), 1.0)
         g0 = g.copy()
         ch = c.huber_cells
@@ -227,7 +255,7 @@ class CorrelativeMatcher:
             if step is None:
                 return None
             step[:2] = np.clip(step[:2], -0.5, 0.5)
-            step[2] = float(np.clip(step[2], -c.angle_step, c.angle_step))
+            step[2] = float(np.clip(step[2], -step_max, step_max))
             step[3] = float(np.clip(step[3], -0.01, 0.01))
             g += step
             if np.all(np.abs(step) < [1e-3, 1e-3, 1e-5, 1e-6]):
@@ -246,7 +274,7 @@ class CorrelativeMatcher:
         return (np.ascontiguousarray(np.floor(u).astype(np.int64)),
                 np.ascontiguousarray(np.floor(v).astype(np.int64)))
 
-    def _covariance(self, cols, rows, phis, bj, bu, bv) -> np.ndarray:
+    def _covariance(self, cols, rows, phis, bj, bu, bv, angle_step: float) -> np.ndarray:
         """Weighted covariance (grid units: cells, cells, rad) of the scores around the peak."""
         c = self.config
         js = np.arange(max(bj - c.cov_angles, 0), min(bj + c.cov_angles, len(phis) - 1) + 1)
@@ -260,7 +288,7 @@ class CorrelativeMatcher:
         mu = w @ X
         D = X - mu
         cov = (D * w[:, None]).T @ D
-        cov += np.diag([1 / 12, 1 / 12, c.angle_step ** 2 / 12])  # the peak's own quantisation
+        cov += np.diag([1 / 12, 1 / 12, angle_step ** 2 / 12])  # the peak's own quantisation
         return cov
 
     def _cov_to_world(self, cov_g) -> np.ndarray:
@@ -292,8 +320,9 @@ class CorrelativeMatcher:
         dv_dphi = cphi * qg[:, 0] - sphi * qg[:, 1]
         return d, (gu, gv, gu * du_dphi + gv * dv_dphi)
 
-    def _refine(self, g, qg):
-        """Gauss–Newton on the Cauchy-weighted signed distance (module doc, step 3)."""
+    def _refine(self, g, qg, angle_step: float):
+        """Gauss–Newton on the Cauchy-weighted signed distance (module doc, step 3); each step's
+        rotation is clipped to one search step."""
         c = self.config
         g = np.array(g, dtype=float)
         ch = c.huber_cells
@@ -303,7 +332,7 @@ class CorrelativeMatcher:
             if step is None:
                 return None
             step[:2] = np.clip(step[:2], -0.5, 0.5)
-            step[2] = float(np.clip(step[2], -c.angle_step, c.angle_step))
+            step[2] = float(np.clip(step[2], -angle_step, angle_step))
             g += step
             if abs(step[0]) < 1e-3 and abs(step[1]) < 1e-3 and abs(step[2]) < 1e-5:
                 break

@@ -15,8 +15,13 @@ All in cells, in the map's grid frame (column u, row v; cell centres at +0.5):
       L = exp(−(sdf · res)² / (2 σ²))  ∈ (0, 1]
 
 - the max-pooled likelihood for the coarse level of the search (Olson 2009): with k the coarse
-  step in cells, ``P[v, u] = max L[v .. v+k−1, u .. u+k−1]``: the sum of P over the endpoints of a
-  scan placed at shift (du, dv) bounds the fine score of every shift (du + i, dv + j), 0 ≤ i, j < k.
+  step in cells and L = 0 off the grid, padded by k − 1 cells on the low side (``pool_pad``)::
+
+      P[v + k − 1, u + k − 1] = max L[v .. v+k−1, u .. u+k−1]      for −(k−1) ≤ v < h, −(k−1) ≤ u < w
+
+  so the sum of P over the endpoints of a scan placed at shift (du, dv) (looked up at
+  (du + k − 1, dv + k − 1)) bounds the fine score of every shift (du + i, dv + j), 0 ≤ i, j < k,
+  also where the block straddles the grid's low edge (part of it off the grid, part on it).
 """
 from __future__ import annotations
 
@@ -46,17 +51,25 @@ def likelihood_grid(occupancy_map: OccupancyMap, sigma: float) -> np.ndarray:
     return occupancy_map._cached(("matching_likelihood", float(sigma)), compute)
 
 
+def pool_pad(k: int) -> int:
+    """Cells of padding on the low side of a grid max-pooled over k × k blocks."""
+    return int(k) - 1
+
+
 def max_pool(grid: np.ndarray, k: int) -> np.ndarray:
-    """``P[v, u] = max grid[v .. v+k−1, u .. u+k−1]`` (cells beyond the edge count as 0)."""
+    """``P[v + k−1, u + k−1] = max grid[v .. v+k−1, u .. u+k−1]`` for −(k−1) ≤ v < h, −(k−1) ≤ u < w
+    (shape (h + k − 1, w + k − 1); cells beyond either edge count as 0)."""
     h, w = grid.shape
-    padded = np.zeros((h + k - 1, w + k - 1), dtype=grid.dtype)
-    padded[:h, :w] = grid
-    rows = padded[0:h].copy()
+    pad = pool_pad(k)
+    padded = np.zeros((h + 2 * pad, w + 2 * pad), dtype=grid.dtype)
+    padded[pad:pad + h, pad:pad + w] = grid
+    H, Wd = h + pad, w + pad
+    rows = padded[0:H].copy()
     for j in range(1, k):  # max over k rows, then over k columns (separable)
-        np.maximum(rows, padded[j:j + h], out=rows)
-    out = rows[:, 0:w].copy()
+        np.maximum(rows, padded[j:j + H], out=rows)
+    out = rows[:, 0:Wd].copy()
     for i in range(1, k):
-        np.maximum(out, rows[:, i:i + w], out=out)
+        np.maximum(out, rows[:, i:i + Wd], out=out)
     return out
 
 
