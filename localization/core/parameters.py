@@ -124,9 +124,11 @@ PARAMETERS = [
           "an integer >= 10"),
     Param("recovery_margin", 0.15, "a challenger wins an update when its scan-map agreement beats the estimate's "
           "by this much (and reaches health_lost_floor)", _fraction, "in [0, 1]"),
-    Param("recovery_confirm_updates", 10, "a challenger replaces the cloud after winning this many updates in a row",
+    Param("recovery_confirm_updates", 20, "a challenger replaces the cloud after winning this many updates in a row",
           lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    Param("recovery_challenger_timeout", 5.0, "a challenger that has not won within this long (s, scan clock) is "
+    Param("recovery_confirm_distance", 1.0, "... while the robot travelled at least this far (m)", _non_negative,
+          ">= 0"),
+    Param("recovery_challenger_timeout", 8.0, "a challenger that has not won within this long (s, scan clock) is "
           "dropped", _positive, "> 0"),
     Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "
           "health)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),

@@ -14,9 +14,11 @@ the fast average stays low for ``health_lost_updates`` updates. Then, with ``rec
                and is updated with the same odometry and scans as the main cloud
     switch     only when the converged challenger's agreement a_c beats the main estimate's a_e and is
                what this map and sensor normally score: a_c ≥ a_e + recovery_margin and
-               a_c ≥ max(health_lost_floor, a_normal − recovery_margin), a_normal the slow average when
-               the filter was judged lost, for ``recovery_confirm_updates`` updates in a row (a near
-               miss re-locks the same way, a short move): the main cloud becomes the challenger's. A
+               a_c ≥ max(health_lost_floor, a_normal − recovery_margin), a_normal the highest slow average
+               seen while tracking (what this map and sensor score when all is well), for
+               ``recovery_confirm_updates`` updates in a row while the robot travelled
+               ``recovery_confirm_distance`` m (a look-alike place rarely keeps fitting as the robot moves;
+               a near miss re-locks the same way, a short move): the main cloud becomes the challenger's. A
                challenger that has not won within ``recovery_challenger_timeout`` s is dropped (the next
                search may try again)
     resume     the fast average back above the lost floor: tracking again
@@ -55,7 +57,8 @@ class RecoveryPolicy:
         self._challenger_since = -math.inf  # s, scan clock
         self._last_search = -math.inf  # s, scan clock
         self._wins = 0  # updates in a row the challenger explained the scan clearly better
-        self._normal = math.nan  # the slow average agreement when the filter was judged lost
+        self._won_distance = 0.0  # m travelled during those updates
+        self._normal = math.nan  # the highest slow average agreement seen while tracking
 
     health = property(lambda self: self.monitor.health)
     status = property(lambda self: HOLDING if self.holding else TRACKING)
@@ -75,7 +78,7 @@ class RecoveryPolicy:
         self._stop_holding()
 
     def _stop_holding(self) -> None:
-        self.holding, self.challenger, self._wins = False, None, 0
+        self.holding, self.challenger, self._wins, self._won_distance = False, None, 0, 0.0
 
     def score(self, pose, beams) -> float:
         """Scan–map agreement of a pose; ``beams`` = (ranges, angles, range_min, range_max)."""
@@ -91,10 +94,12 @@ class RecoveryPolicy:
             self.restart()
         agreement = self.score(pose, beams)
         lost = self.monitor.update(agreement) and p.recovery and not self.holding
+        if not self.holding and math.isfinite(self.monitor.slow) and self.monitor.samples >= p.health_lost_updates:
+            self._normal = max(self.monitor.slow, self._normal) if math.isfinite(self._normal) else self.monitor.slow
         message = ""
         if lost:
             m = self.monitor
-            self.holding, self._normal = True, m.slow
+            self.holding = True
             message = (f"localization lost: scan-map agreement {m.fast:.2f} (long-term {m.slow:.2f}) for "
                        f"{m.low_count} updates: holding the pose on odometry, updates only where they agree "
                        "with the map, searching the map for a better place")
@@ -108,10 +113,12 @@ class RecoveryPolicy:
         return self.holding and self.challenger is None and t - self._last_search >= self.params.recovery_search_period
 
     def start(self, challenger, t: float) -> None:
-        self.challenger, self._challenger_since, self._last_search, self._wins = challenger, t, t, 0
+        self.challenger, self._challenger_since, self._last_search = challenger, t, t
+        self._wins, self._won_distance = 0, 0.0
 
-    def challenge(self, main_agreement: float, beams, t: float) -> str:
-        """After the challenger's own update: "switch", "drop" or "" (keep watching)."""
+    def challenge(self, main_agreement: float, beams, t: float, distance: float) -> str:
+        """After the challenger's own update (``distance``: m travelled since the previous update):
+        "switch", "drop" or "" (keep watching)."""
         p, c = self.params, self.challenger
         est = c.estimate()
         a_c = self.score(est.pose, beams) if cloud_spread(est.covariance) < p.global_converged_std else math.nan
@@ -119,7 +126,8 @@ class RecoveryPolicy:
         better = (math.isfinite(a_c) and a_c >= max(p.health_lost_floor, normal)
                   and a_c >= (main_agreement if math.isfinite(main_agreement) else 0.0) + p.recovery_margin)
         self._wins = self._wins + 1 if better else 0
-        if self._wins >= p.recovery_confirm_updates:
+        self._won_distance = self._won_distance + distance if better else 0.0
+        if self._wins >= p.recovery_confirm_updates and self._won_distance >= p.recovery_confirm_distance:
             return "switch"
         if t - self._challenger_since > p.recovery_challenger_timeout:
             self.challenger, self._wins = None, 0

@@ -131,9 +131,10 @@ class ScanStep:
         if verdict.message:
             self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
         return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
-                                                                  verdict.agreement))
+                                                                  verdict.agreement, distance))
 
-    def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float):
+    def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float,
+                   distance: float):
         """While holding: search for, update and judge a challenger; its estimate when it wins."""
         recovery = self.recovery
         if recovery.search_due(t_s):
@@ -142,12 +143,13 @@ class ScanStep:
         if recovery.challenger is None:
             return None
         recovery.challenger.sensor_update(b.ranges, b.angles, offsets, range_max=beams[3])
-        verdict = recovery.challenge(main_agreement, beams, t_s)
+        verdict = recovery.challenge(main_agreement, beams, t_s, distance)
         if verdict != "switch":
             return None
         won, est = recovery.challenger, recovery.challenger.estimate()
         self.pf.set_particles(won.particles)
         recovery.restart()
         self.warn("recovery-switch", f"recovery: the scans fit ({est.pose[0]:.2f}, {est.pose[1]:.2f}) clearly better "
-                  f"for {self.params.recovery_confirm_updates} updates in a row: the cloud moves there")
+                  f"for {self.params.recovery_confirm_updates}+ updates over {self.params.recovery_confirm_distance} "
+                  "m: the cloud moves there")
         return est
