@@ -17,7 +17,25 @@ setup(
         (f"share/{PACKAGE}/rviz", glob("rviz/*.rviz")),
         (f"share/{PACKAGE}/maps", glob("maps/*.yaml") + glob("maps/*.png") + ["maps/README.md"]),
     ],
-    install_requires=["setuptools"],
+    python_requires=">=3.10",
+    # what `pip install .` brings; the ROS side (rclpy, the message packages, tf2_ros) comes from a
+    # ROS install (package.xml, rosdep) or from the ROS 2 wheels that requirements.txt pins.
+    # Exact, tested versions: requirements.txt (direct) and constraints.txt (everything).
+    install_requires=[
+        "numpy>=1.24,<3",
+        "scipy>=1.10,<2",
+        "numba>=0.58,<1",  # optional at run time (numpy fallbacks), but the speed figures need it
+        "rosbags>=0.10,<0.12",
+        "PyYAML>=6,<7",
+        "matplotlib>=3.7,<4",
+        "pillow>=9,<14",
+        "tqdm>=4.60,<5",
+    ],
+    extras_require={
+        "tune": ["optuna>=4,<6"],  # localization-tune
+        "live": ["foxglove-sdk>=0.30,<1"],  # localization-replay --foxglove, the node's live view
+        "dev": ["pytest>=8", "hypothesis>=6", "ruff>=0.5", "websockets>=13"],
+    },
     zip_safe=True,
     maintainer="localization maintainers",
     maintainer_email="localization@example.com",

@@ -5,7 +5,8 @@
 #   scripts/bootstrap.sh setup  only set up .venv
 # Extra arguments go to the main job / pytest. Re-running is cheap: installed pieces are kept.
 #
-# ROS 2 Jazzy comes from pinned PyPI wheels (requirements.txt). DDS traffic stays on loopback
+# ROS 2 Jazzy comes from pinned PyPI wheels: requirements.txt lists the direct dependencies,
+# constraints.txt pins everything they pull in (the tested set). DDS traffic stays on loopback
 # (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in a per-run ROS_DOMAIN_ID unless one is set.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -36,10 +37,10 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PY="$VENV/bin/python"
 stamp="$VENV/.requirements.sha"
-want="$(sha256sum requirements.txt interfaces/tf2_msgs/build-requirements.txt | sha256sum | cut -c1-16)"
+want="$(sha256sum requirements.txt constraints.txt interfaces/tf2_msgs/build-requirements.txt | sha256sum | cut -c1-16)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$PY" -m pip install --quiet --upgrade pip
-  "$PY" -m pip install --quiet -r requirements.txt
+  "$PY" -m pip install --quiet -r requirements.txt -c constraints.txt
   missing=()
   command -v cmake >/dev/null 2>&1 || missing+=(cmake)
   command -v g++ >/dev/null 2>&1 || missing+=(g++)
@@ -56,7 +57,7 @@ fi
 
 export PATH="$PWD/$VENV/bin:$PATH"
 case "$action" in
-  run)   exec localization-demo "$@" ;;
+  run)   exec localization-demo --overwrite "$@" ;;  # re-running replaces demo-results/
   test)  exec "$PY" -m pytest -q "$@" ;;
   setup) echo "bootstrap: $VENV is ready (ROS_DOMAIN_ID=$ROS_DOMAIN_ID)" ;;
   *)     echo "usage: scripts/bootstrap.sh {run|test|setup} [args...]" >&2; exit 2 ;;

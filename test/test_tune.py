@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import signal
 import subprocess
@@ -33,7 +34,7 @@ particle_filter:
     num_particles: 200
     num_beams_per_particle: 20
     ray_caster: lookup_table
-    sigma_hit: 0.5
+    sigma_hit: 0.025
     squash_factor: 1.0
     motion_a_trans: 0.001
     motion_a_lateral: 0.001
@@ -50,7 +51,7 @@ SPACE = """\
 motion_a_trans: {low: 0.02, high: 1.0, log: true}
 motion_a_rot: {low: 0.05, high: 2.0, log: true}
 motion_floor_xy: {low: 0.0, high: 0.05}
-sigma_hit: {low: 1.0, high: 10.0, log: true}
+sigma_hit: {low: 0.05, high: 0.5, log: true}
 squash_factor: {low: 1.0, high: 5.0}
 num_beams_per_particle: {low: 10, high: 30, step: 10}
 """
@@ -77,6 +78,54 @@ def _args(bags, start, out, *extra) -> list[str]:
 
 def _study(out: Path):
     return optuna.load_study(study_name="localization-tune", storage=make_storage(str(out / "study.journal")))
+
+
+# --------------------------------------------------------------------------------------------
+# The tuner and localization-replay: one feed loop, one scorer
+# --------------------------------------------------------------------------------------------
+
+
+def test_tuner_and_replay_score_a_real_bag_alike():
+    """The same parameters and seed give the same estimates, the same per-scan agreement (the pose
+    at each scan's time, ranges scaled by lidar_scale_to_map_scale) and the same per-bag error in
+    the tuner and in localization-replay (real bag, no ground truth)."""
+    import numpy as np
+
+    from localization.core.paths import config_dir
+    from localization.eval.datasets import REAL_BAGS, real_bag_path
+    from localization.eval.feed import make_scorer
+    from localization.eval.reference import track_errors
+    from localization.eval.replay import ReplayOptions, run_replay
+    from localization.eval.tuning import evaluate_bag, load_bag, replay_bag
+
+    rb = REAL_BAGS["bag3"]
+    params = Parameters.from_yaml(config_dir() / "real_params.yaml", random_seed=5)
+    assert params.lidar_scale_to_map_scale != 1.0  # the range scale matters for this comparison
+    res = run_replay(ReplayOptions(real_bag_path("bag3"), rb.map, params, initial_pose=rb.start, reference=False))
+    bag = load_bag(real_bag_path("bag3"), scan_topic=params.scan_topic, odom_topic=params.odom_topic,
+                   initialpose_topic=params.initialpose_topic, initial_pose=rb.start)
+    scorer = make_scorer(res.occupancy_map, params)
+    log, _ = replay_bag(bag, res.occupancy_map, params, scorer=scorer)
+    est_t, est_poses = log.estimates()
+    np.testing.assert_array_equal(est_t, res.est_t)
+    np.testing.assert_array_equal(est_poses, res.est_poses)
+    assert len(res.agreement) > 200
+    np.testing.assert_array_equal(np.asarray(log.agreement_t), res.agreement_t)
+    np.testing.assert_array_equal(np.asarray(log.agreement), res.agreement)
+    # the per-bag error, truth-free: 1 - median agreement (the tuner) vs the replay's figure
+    s = evaluate_bag(bag, res.occupancy_map, params, scorer=scorer)
+    assert s.source == "agreement"
+    assert abs(s.error - (1.0 - float(np.median(res.agreement)))) <= 1e-9, (s.error, np.median(res.agreement))
+    assert s.recoveries == res.counts["recoveries"]
+    # against a reference track: the mean position error of the same estimates at the scans' times
+    np.testing.assert_array_equal(log.scan_track()[0], res.scan_t)
+    np.testing.assert_array_equal(log.scan_track()[1], res.scan_poses)
+    ref_t, ref_p = res.scan_t[::4], res.scan_poses[::4] + [0.05, -0.02, 0.0]
+    bag.reference = (ref_t, ref_p)
+    s_ref = evaluate_bag(bag, res.occupancy_map, params, scorer=scorer)
+    expect = float(track_errors(res.scan_t, res.scan_poses, ref_t, ref_p).position.mean())
+    assert expect == pytest.approx(math.hypot(0.05, 0.02), abs=1e-9)
+    assert s_ref.source == "reference" and abs(s_ref.error - expect) <= 1e-9, (s_ref.error, expect)
 
 
 # --------------------------------------------------------------------------------------------
@@ -249,7 +298,7 @@ def test_baseline_outside_a_list_of_choices(bags, start, tmp_path, capsys):
     params, _ = start
     params.write_text(BAD_START.replace("ray_caster: lookup_table", "ray_caster: lookup_table_exact"))
     space = tmp_path / "choices.yaml"
-    space.write_text("ray_caster: {choices: [lookup_table]}\nsigma_hit: {low: 1.0, high: 10.0}\n"
+    space.write_text("ray_caster: {choices: [lookup_table]}\nsigma_hit: {low: 0.05, high: 0.5}\n"
                      "motion_a_trans_to_rot: {low: 0.01, high: 1.0, log: true}\n")  # start 0.0: not on a log axis
     rc = tune.main([bags[0], "--map", "stata_basement", "--params", str(params), "--space", str(space),
                     "--out", str(tmp_path / "out"), "--trials", "3", "--quiet", "--json"])
@@ -257,7 +306,7 @@ def test_baseline_outside_a_list_of_choices(bags, start, tmp_path, capsys):
     assert rc == 0, captured.err
     s = json.loads(captured.out)
     assert s["n_complete"] == 3 and s["baseline_value"] is not None
-    assert s["baseline_params"] == {"sigma_hit": 0.5}
+    assert s["baseline_params"] == {"sigma_hit": 0.025}
 
 
 def test_compare_scores_two_parameter_files(bags, start, tmp_path, capsys):
@@ -272,3 +321,42 @@ def test_compare_scores_two_parameter_files(bags, start, tmp_path, capsys):
     assert len(r["compare"]["errors"]) == 2
     assert r["compare"]["error"] < r["start"]["error"]
     assert not (tmp_path / "out" / "study.journal").exists()  # no study
+
+
+# --------------------------------------------------------------------------------------------
+# Resuming: no parameter set evaluated twice
+# --------------------------------------------------------------------------------------------
+
+
+RESUME_SPACE = "motion_a_trans: {low: 0.02, high: 1.0, log: true}\nsquash_factor: {low: 1.0, high: 5.0}\n"
+
+
+def test_resumed_study_draws_new_parameter_sets(bags, start, tmp_path):
+    start[1].write_text(RESUME_SPACE)
+    out = tmp_path / "out"
+    assert tune.main(_args(bags[:1], start, out, "--trials", "3")) == 0
+    assert tune.main(_args(bags[:1], start, out, "--trials", "3")) == 0  # same --out: the study continues
+    trials = _study(out).get_trials()
+    sampled = [tuple(sorted(t.params.items())) for t in trials if not t.user_attrs.get("baseline")]
+    assert len(trials) == 6
+    assert len(set(sampled)) == len(sampled) == 5  # the second command did not draw the first one's again
+    assert not any("repeat_of" in t.user_attrs for t in trials)
+
+
+def test_a_repeated_parameter_set_returns_the_stored_value(bags, start, tmp_path, capsys):
+    start[1].write_text(RESUME_SPACE)
+    out = tmp_path / "out"
+    assert tune.main(_args(bags[:1], start, out, "--trials", "2")) == 0
+    study = _study(out)
+    first = [t for t in study.get_trials() if not t.user_attrs.get("baseline")][0]
+    study.enqueue_trial(first.params)  # as a second machine on a shared study might propose it
+    capsys.readouterr()
+    assert tune.main(_args(bags[:1], start, out, "--trials", "1", "--json")) == 0
+    s = json.loads(capsys.readouterr().out)
+    last = _study(out).get_trials()[-1]
+    assert last.params == first.params and last.state == optuna.trial.TrialState.COMPLETE
+    assert last.user_attrs["repeat_of"] == first.number and last.value == first.value
+    assert last.user_attrs["error_0"] == first.user_attrs["error_0"] and last.user_attrs["wall_s"] == 0.0
+    assert s["n_trials"] == 3 and s["n_repeated"] == 1
+    rows = list(csv.DictReader(open(out / "trials.csv")))
+    assert rows[-1]["repeat_of"] == str(first.number) and rows[0]["repeat_of"] == ""

@@ -1,8 +1,10 @@
 """A replay's run as an MCAP bag (rosbag2, written with rosbags): open it in Foxglove Studio, or
-play it into RViz with ``ros2 bag play run.mcap`` (rviz/localization.rviz shows every topic).
+play it into RViz with ``ros2 bag play OUT/run_mcap`` (rviz/localization.rviz shows every topic).
 
-    localization-replay BAG --map basement_fixed --params real_params      # writes OUT/run.mcap
-    localization-replay BAG --map basement_fixed --no-mcap                 # does not
+    localization-replay BAG --map basement_fixed --params real_params --mcap   # writes OUT/run_mcap/
+    localization-replay BAG --map basement_fixed --params real_params          # does not
+
+(To watch a replay as it runs instead: ``localization-replay ... --foxglove``, ``localization.ros.live_view``.)
 
 Topics (stamps = bag time of the data):
 
@@ -62,7 +64,7 @@ class ReplayRecorder:
     def __call__(self, scan, localizer) -> None:
         self.scans.append(scan)
         if localizer.ready and scan.stamp - self._last_cloud >= self.cloud_period:
-            p = np.asarray(localizer.filter.particles, dtype=float)
+            p = np.asarray(localizer.particles(), dtype=float)
             p = p[np.all(np.isfinite(p), axis=1)]
             if len(p) > self.max_particles:
                 p = p[np.linspace(0, len(p) - 1, self.max_particles).round().astype(np.intp)]

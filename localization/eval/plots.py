@@ -31,13 +31,15 @@ def map_image(occupancy_map: OccupancyMap, xlim, ylim, resolution: float | None 
 
 
 def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=None, initial_pose=None,
-                    title: str = "", margin: float = 3.0) -> Path:
-    """Map, ground truth (if any) and estimated trajectory; the view fits both plus ``margin``."""
+                    title: str = "", margin: float = 3.0, reference_poses=None) -> Path:
+    """Map, ground truth (if any), the reference track of scan matches (if any: ``reference_poses``,
+    its good matches) and the estimated trajectory; the view fits them all plus ``margin``."""
     plt = _pyplot()
     est = np.asarray(est_poses, dtype=float).reshape(-1, 3)
-    pts = [est[:, :2]]
-    if truth_poses is not None and len(truth_poses):
-        pts.append(np.asarray(truth_poses, dtype=float)[:, :2])
+    truth = None if truth_poses is None or not len(truth_poses) else np.asarray(truth_poses, dtype=float).reshape(-1, 3)
+    ref = None if reference_poses is None or not len(reference_poses) else \
+        np.asarray(reference_poses, dtype=float).reshape(-1, 3)
+    pts = [p[:, :2] for p in (est, truth, ref) if p is not None]
     allp = np.vstack(pts) if sum(len(p) for p in pts) else np.zeros((1, 2))
     allp = allp[np.all(np.isfinite(allp), axis=1)]
     if not len(allp):
@@ -51,10 +53,12 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
     fig, ax = plt.subplots(figsize=(w, float(np.clip(w * aspect, 4.0, 14.0))))
     ax.imshow(img, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray", vmin=0, vmax=1,
               interpolation="nearest")
-    if truth_poses is not None and len(truth_poses):
-        tp = np.asarray(truth_poses, dtype=float)
-        ax.plot(tp[:, 0], tp[:, 1], "-", color="tab:green", lw=2.0, label="ground truth", zorder=3)
-        ax.plot(tp[0, 0], tp[0, 1], "o", color="tab:green", ms=7, zorder=3)
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="tab:green", lw=2.0, label="ground truth", zorder=3)
+        ax.plot(truth[0, 0], truth[0, 1], "o", color="tab:green", ms=7, zorder=3)
+    if ref is not None:
+        ax.plot(ref[:, 0], ref[:, 1], ".", color="tab:cyan", ms=4.0, label="reference track (scan matches)",
+                zorder=3)
     if len(est):
         ax.plot(est[:, 0], est[:, 1], "-", color="tab:red", lw=1.0, label="estimate", zorder=4)
     if initial_pose is not None:  # an outline under the tracks: the start of the track stays visible
@@ -75,55 +79,64 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
 
 
 def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, agreement_t=None, agreement=None,
-                title: str = "", threshold: float = 0.2, particles_t=None, particles=None) -> Path:
-    """CT error (and heading error) vs time when there is truth, scan–map agreement vs time, and the
-    particle count vs time when it changes (adaptive_particles, global spreads)."""
+                title: str = "", threshold: float = 0.2, particles_t=None, particles=None, track=None) -> Path:
+    """One panel each, against time since ``t0``, for what is given:
+
+    - position error |x̂ − x| against the ground truth (``ct_t``, ``ct_error``, metres) with the
+      convergence ``threshold`` line;
+    - along-track and cross-track error against the truth (``track``: an object with ``t``,
+      ``along``, ``cross``, e.g. ``localization.eval.reference.TrackErrors``; signed metres,
+      along > 0 ahead of the car, cross > 0 left of its path);
+    - heading error |θ̂ − θ| (``heading_error``, radians, drawn in degrees) on its own axis;
+    - scan–map agreement; the particle count when it changes (adaptive_particles, global spreads)."""
     plt = _pyplot()
     has_truth = ct_t is not None and len(ct_t) > 0
+    has_track = has_truth and track is not None and len(track.t) > 0
+    has_heading = has_truth and heading_error is not None and len(heading_error) > 0
     has_agree = agreement_t is not None and len(agreement_t) > 0
     has_count = particles is not None and len(particles) > 0 and np.ptp(particles) > 0
-    rows = int(has_truth) + int(has_agree) + int(has_count) or 1
-    fig, axes = plt.subplots(rows, 1, figsize=(10, 3.2 * rows), sharex=True, squeeze=False)
+    rows = int(has_truth) + int(has_track) + int(has_heading) + int(has_agree) + int(has_count) or 1
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 2.6 * rows + 0.6), sharex=True, squeeze=False)
     axes = axes[:, 0]
-    i = 0
+    panels = iter(axes)
     if has_truth:
-        ax = axes[i]
-        i += 1
+        ax = next(panels)
         t = np.asarray(ct_t) - t0
-        ax.plot(t, ct_error, color="tab:red", lw=1.0, label="cross-track error")
+        ax.plot(t, ct_error, color="tab:red", lw=1.0, label="position error |x̂ − x|")
         ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"{threshold} m (converged)")
-        ax.set_ylabel("CT error (m)")
+        ax.set_ylabel("position error (m)")
         err = np.asarray(ct_error, dtype=float)
         top = np.nanmax(err[np.isfinite(err)]) if np.isfinite(err).any() else threshold
         ax.set_ylim(0, 1.1 * max(top, 1.25 * threshold))  # the whole trace, and the threshold line below the top
-        handles, labels = ax.get_legend_handles_labels()
-        if heading_error is not None:
-            ax2 = ax.twinx()
-            line, = ax2.plot(t, np.degrees(heading_error), color="tab:blue", lw=0.6, alpha=0.5,
-                             label="heading error (right axis)")
-            ax2.set_ylabel("heading error (deg)", color="tab:blue")
-            ax2.set_ylim(bottom=0)
-            ax.set_zorder(ax2.get_zorder() + 1)  # the CT error trace drawn over the heading trace
-            ax.patch.set_visible(False)
-            handles.append(line)
-            labels.append(line.get_label())
-        ax.legend(handles, labels, loc="upper right", fontsize=8)
-        ax.set_title(title)
+        ax.legend(loc="upper right", fontsize=8)
+    if has_track:
+        ax = next(panels)
+        tt = np.asarray(track.t) - t0
+        ax.plot(tt, track.along, color="tab:orange", lw=1.0, label="along-track (> 0 ahead)")
+        ax.plot(tt, track.cross, color="tab:blue", lw=1.0, label="cross-track (> 0 left)")
+        ax.axhline(0.0, color="gray", lw=0.6)
+        ax.set_ylabel("along / cross (m)")
+        ax.legend(loc="upper right", fontsize=8)
+    if has_heading:
+        ax = next(panels)
+        ax.plot(np.asarray(ct_t) - t0, np.degrees(np.abs(heading_error)), color="tab:purple", lw=0.8,
+                label="heading error |θ̂ − θ|")
+        ax.set_ylabel("heading error (deg)")
+        ax.set_ylim(bottom=0)
+        ax.legend(loc="upper right", fontsize=8)
     if has_agree:
-        ax = axes[i]
-        ax.plot(np.asarray(agreement_t) - t0, agreement, color="tab:purple", lw=1.0)
+        ax = next(panels)
+        ax.plot(np.asarray(agreement_t) - t0, agreement, color="tab:gray", lw=1.0, label="scan-map agreement")
         ax.set_ylabel("scan-map agreement")
         ax.set_ylim(0, 1.02)
-        if not has_truth:
-            ax.set_title(title)
-        i += 1
     if has_count:
-        ax = axes[i]
+        ax = next(panels)
         ax.step(np.asarray(particles_t) - t0, particles, where="post", color="tab:green", lw=1.0)
         ax.set_ylabel("particles")
         ax.set_yscale("log")
     if not (has_truth or has_agree):
         axes[0].text(0.5, 0.5, "no data", ha="center", va="center", transform=axes[0].transAxes)
+    axes[0].set_title(title)
     axes[-1].set_xlabel("time since start (s)")
     for ax in axes:
         ax.grid(True, alpha=0.3)

@@ -727,6 +727,7 @@ def run_workers(cfg: TuneConfig, n_trials: int, jobs: int = 1, progress: bool = 
                 p.join(1.0)
                 if not trials_bar.disable:  # the workers' finished trials, read from the shared study
                     done = _n_finished(study) - before
+                    _BarCallback(trials_bar).best(study)
                     trials_bar.update(max(0, min(done, n_trials) - trials_bar.n))
     trials_bar.close()
     if stop.requested:
@@ -744,13 +745,15 @@ class _BarCallback:
         self.bar = bar
 
     def __call__(self, study, trial) -> None:  # noqa: ARG002 - an Optuna callback
-        if self.bar.disable:
-            return
+        if not self.bar.disable:
+            self.best(study)
+            self.bar.update(1)
+
+    def best(self, study) -> None:
         try:
             self.bar.set_postfix_str(f"best {study.best_value:.4f}", refresh=False)
-        except ValueError:
+        except ValueError:  # no complete trial yet
             pass
-        self.bar.update(1)
 
 
 def _source(bag: BagData) -> str:

@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import re
+import sys
 from pathlib import Path
 
-from localization.core.parameters import ParameterError, Parameters
+from localization.core.parameters import BY_NAME, ParameterError, Parameters
 from localization.core.paths import resolve_params_path
 
 
@@ -61,13 +64,59 @@ def non_negative_float(text: str) -> float:
     return _float_from(text, allow_zero=True)
 
 
+_PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]*")
+
+
 def param_override(text: str) -> tuple:
-    """``NAME=VALUE`` with VALUE parsed as YAML (``-p num_particles=500``)."""
+    """``NAME=VALUE`` or the ROS spelling ``NAME:=VALUE`` with VALUE parsed as YAML
+    (``-p num_particles=500``, ``-p recovery:=false``); NAME must be a parameter of the table."""
     import yaml
-    if "=" not in text:
-        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
-    name, value = text.split("=", 1)
-    return name.strip(), yaml.safe_load(value)
+
+    sep = min((i for i in (text.find(":="), text.find("=")) if i >= 0), default=-1)
+    if sep <= 0:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE or NAME:=VALUE, got {text!r}")
+    name = text[:sep].strip()
+    value = text[sep + (2 if text.startswith(":=", sep) else 1):]
+    if not _PARAM_NAME.fullmatch(name):
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE or NAME:=VALUE, got {text!r}")
+    if name not in BY_NAME:
+        raise argparse.ArgumentTypeError(f"unknown parameter {name!r} in {text!r}")
+    try:
+        return name, yaml.safe_load(value)
+    except yaml.YAMLError:
+        raise argparse.ArgumentTypeError(f"value of {name} is not valid YAML: {value!r}") from None
+
+
+def topic_list(text: str) -> list:
+    """``/scan,/vesc/odom``: one or more topic names, comma-separated (an option taking one value
+    cannot swallow a positional argument that follows it)."""
+    topics = [t.strip() for t in text.split(",") if t.strip()]
+    bad = [t for t in topics if not re.fullmatch(r"/?[A-Za-z_~][A-Za-z0-9_/~]*", t)]
+    if not topics or bad:
+        raise argparse.ArgumentTypeError(f"expected comma-separated topic names (/scan,/odom), got {text!r}")
+    return topics
+
+
+def output_problem(path, overwrite: bool, kind: str = "folder") -> str | None:
+    """Why ``path`` cannot be written, checked before any work is done (None: it can): an existing
+    non-empty output without ``overwrite``, a file where a folder is wanted (or the reverse), or a
+    parent folder that does not exist (``kind="file"``: the file's own folder is not created)."""
+    path = Path(path)
+    if path.exists():
+        if kind == "file" and path.is_dir():
+            return f"{path} is a folder: give a file name"
+        if kind == "folder" and not path.is_dir():
+            return f"{path} exists and is not a folder"
+        non_empty = any(path.iterdir()) if path.is_dir() else path.stat().st_size > 0
+        if non_empty and not overwrite:
+            return f"{path} exists already: choose another name, or pass --overwrite to replace it"
+    if kind == "file":
+        parent = path.parent if str(path.parent) else Path(".")
+        if not parent.is_dir():
+            return f"folder {parent} of {path} does not exist"
+        if not os.access(parent, os.W_OK):
+            return f"cannot write in {parent}"
+    return None
 
 
 def load_parameters(params_file, overrides: dict) -> Parameters:
@@ -81,3 +130,41 @@ def load_parameters(params_file, overrides: dict) -> Parameters:
     return Parameters.from_yaml(path, **overrides)
 
 
+#: the car's parameter file in the package's config/ (the RSS 2022 RACECAR bags)
+REAL_PARAMS = "real_params"
+
+PARAMS_HELP = ("ROS 2 parameter file, or a name in the package's config/ (params, real_params); default: the "
+               "built-in defaults, or config/real_params.yaml when the bag has the car's odometry topic "
+               "(/vesc/odom) and not /odom (said on stderr)")
+
+
+def _topics_of(bag) -> set | None:
+    from localization.bags import BagError, open_bag
+    try:
+        with open_bag(bag) as b:
+            return set(b.topic_infos)
+    except BagError:
+        return None
+
+
+def parameters_for_bags(params_file, overrides: dict, bags, odom_topic: str | None = None, prog: str = "",
+                        say=None) -> Parameters:
+    """The parameters a tool runs with: ``params_file`` (a path or a name in config/) when given;
+    else the built-in defaults, unless every bag lacks the defaults' odometry topic (``/odom``, the
+    simulator's) and has the car's (``config/real_params.yaml``'s ``/vesc/odom``): then the car's
+    parameter file, said in one line on stderr (``say``). A given ``odom_topic`` keeps the
+    defaults. Raises ParameterError (one line) for a missing file or a bad value."""
+    params = load_parameters(params_file, overrides)
+    if params_file is not None or odom_topic:
+        return params
+    seen = [_topics_of(b) for b in bags if Path(b).exists()]
+    if not seen or any(t is None for t in seen):
+        return params
+    real = load_parameters(REAL_PARAMS, overrides)
+    if any(params.odom_topic in t or real.odom_topic not in t for t in seen):
+        return params
+    (say or (lambda line: print(line, file=sys.stderr)))(
+        f"{prog + ': ' if prog else ''}note: no --params given and the bag has {real.odom_topic}, not "
+        f"{params.odom_topic}: using the car's parameters (config/{REAL_PARAMS}.yaml); pass --params params "
+        "for the simulator's")
+    return real

@@ -4,10 +4,15 @@ mount, lidar range scale) against a map; see ``localization.eval.calibration``.
 Usage::
 
     localization-calibrate BAG --map MAP [--initial-pose X,Y,YAW] [--scan-topic T] [--odom-topic T]
-                           [--params FILE] [--json] [--out params.yaml]
+                           [--params FILE] [--json] [--out params.yaml [--overwrite]] [--quiet]
 
 Initial pose: ``--initial-pose``, else the bag's first ``/initialpose``. The laser mount assumed
-while matching (any guess within a few centimetres will do) comes from ``--params`` (laser_offset_*).
+while matching (any guess within a few centimetres will do) and the topics come from ``--params``
+(laser_offset_*, scan_topic, odom_topic); without it, the parameters are picked as
+``localization-replay`` picks them (``tools.args.parameters_for_bags``: the built-in defaults, or
+config/real_params.yaml for a bag with the car's ``/vesc/odom`` and no ``/odom``). A topic missing
+from the bag is one error line naming the bag's topics of that type. ``--out`` is checked before
+the work starts (its folder must exist; an existing file is replaced only with ``--overwrite``).
 ``--json`` prints one object: the eight values under their names (numbers), their 1 σ under
 ``uncertainty``. ``--out`` writes a ROS 2 parameter file fragment (``particle_filter:
 ros__parameters: {...}``) to merge into the car's parameter file.
@@ -26,6 +31,8 @@ from localization.bags import BagError
 from localization.core.occupancy_map import MapError, load_map
 from localization.core.parameters import ParameterError
 from localization.eval.calibration import KEYS, CalibrationError, calibrate_bag
+from localization.eval.progress import busy
+from localization.eval.replay import ReplayError, check_topics
 from localization.tools import args as args_
 
 PROG = "localization-calibrate"
@@ -42,29 +49,46 @@ def build_parser() -> argparse.ArgumentParser:
                          "/initialpose")
     ap.add_argument("--scan-topic", default=None, help="default: the scan_topic parameter (/scan)")
     ap.add_argument("--odom-topic", default=None, help="default: the odom_topic parameter (/odom)")
-    ap.add_argument("--params", type=Path, help="parameter file (topics and the laser mount guess)")
+    ap.add_argument("--params", type=Path, help=args_.PARAMS_HELP + "; gives the topics and the laser mount guess")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
-    ap.add_argument("--out", type=Path, help="write a ROS 2 parameter file fragment here")
+    ap.add_argument("--out", type=Path, help="write a ROS 2 parameter file fragment here (its folder must exist)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    ap.add_argument("--quiet", action="store_true", help="no progress lines or bar on stderr (--json implies it)")
     return ap
+
+
+def check_bag_topics(bag, scan_topic: str, odom_topic: str) -> None:
+    """The bag has the scan and odometry topics (ReplayError naming the bag's topics of that type
+    otherwise, as localization-replay says it)."""
+    from localization.bags import open_bag
+    with open_bag(bag) as b:
+        check_topics(b.topic_infos, b.path, scan_topic, odom_topic, None, "", bag_initial_pose=False)
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        params = args_.load_parameters(args.params, {})
+        if args.out is not None:
+            problem = args_.output_problem(args.out, args.overwrite, kind="file")
+            if problem:
+                raise CalibrationError(f"--out: {problem}")
         if not Path(args.bag).exists():
             raise CalibrationError(f"bag not found: {args.bag}")
+        params = args_.parameters_for_bags(args.params, {}, [args.bag], args.odom_topic, PROG)
+        scan_topic, odom_topic = args.scan_topic or params.scan_topic, args.odom_topic or params.odom_topic
+        check_bag_topics(args.bag, scan_topic, odom_topic)
         occupancy_map = load_map(args.map)
         mount = (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw)
-        log = None if args.json else (lambda msg: print(msg, file=sys.stderr))
-        res = calibrate_bag(args.bag, occupancy_map, args.scan_topic or params.scan_topic,
-                            args.odom_topic or params.odom_topic, args.initial_pose, mount, log=log)
+        quiet = args.json or args.quiet
+        with busy("calibrating", enabled=False if quiet else None) as say:  # a bar when stderr is a terminal
+            res = calibrate_bag(args.bag, occupancy_map, scan_topic, odom_topic, args.initial_pose, mount,
+                                log=None if quiet else say)
         if args.out is not None:
             try:
                 Path(args.out).write_text(res.parameter_yaml())
             except OSError as exc:
                 raise CalibrationError(f"cannot write {args.out}: {exc}") from None
-    except (CalibrationError, BagError, MapError, ParameterError) as exc:
+    except (CalibrationError, BagError, MapError, ParameterError, ReplayError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

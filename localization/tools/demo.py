@@ -8,15 +8,17 @@
    RSS 2022 bags from their approximate start poses with ``config/real_params.yaml``.
 3. Prints a table like the report's (trial, noise level -> CT error; real bags -> scan-map
    agreement) and where the plots are.
-4. The fast trial (6-7 m/s, odometry 40 ms late, lidar sweep timing; issue 10): mean error and
+4. The fast trial (6-7 m/s, odometry 40 ms late, lidar sweep timing): mean error and
    along-/cross-track error against the ground truth with odometry aligned to each scan and the
    scan deskewed (``odom_time_offset`` = -0.04, the latency the calibrator measures) and with
-   both off (``align_odometry`` and ``deskew`` false: the filter before issue 10). ``--skip-fast``.
+   both off (``align_odometry`` and ``deskew`` false: no time alignment at all). ``--skip-fast``.
 
 ``--motion-sweep`` adds a table of the real bags' scan-map agreement as the motion-noise
 parameters of ``real_params.yaml`` are scaled (how much the filter should trust the odometry).
 
 Replays run in parallel worker processes (``--jobs``, default: the number of CPUs, at most 4).
+``--out`` (default ``./demo-results``) must not hold anything yet unless ``--overwrite`` (its
+files are then replaced).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from pathlib import Path
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.eval.datasets import REAL_BAGS, REPORT_TRIALS, SIM_TRIALS, real_bag_path, sim_bag
+from localization.tools import args as args_
 
 PROG = "localization-demo"
 
@@ -92,7 +95,7 @@ def sim_table(results: list) -> str:
 
 
 FAST_TRIAL = "fast"
-#: the fast trial's replays: label -> parameter overrides (issue 10)
+#: the fast trial's replays: label -> parameter overrides
 FAST_RUNS = {"fast_aligned": {"odom_time_offset": -0.04},
              "fast_unaligned": {"align_odometry": False, "deskew": False}}
 
@@ -123,10 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=PROG, description="Record (or reuse) the simulated Stata basement trials, "
                                  "replay them and the real RSS 2022 bags, print the results table.")
     ap.add_argument("--out", type=Path, default=Path("demo-results"), help="where the replays' outputs go "
-                    "(default ./demo-results)")
+                    "(default ./demo-results; must be empty or new unless --overwrite)")
+    ap.add_argument("--overwrite", action="store_true", help="replace the files of an existing --out folder")
     ap.add_argument("--particles", type=int, help="override num_particles (default: the parameters' 2000)")
     ap.add_argument("-p", "--param", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
-                    help="override a parameter in every replay (repeatable)")
+                    type=args_.param_override,
+                    help="override a parameter in every replay (repeatable; NAME:=VALUE works too)")
     ap.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 4), help="parallel replays")
     ap.add_argument("--loop", action="store_true", help="also replay the long loop with biased odometry")
     ap.add_argument("--skip-sim", action="store_true", help="only the real bags")
@@ -141,15 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    import yaml
     args = build_parser().parse_args(argv)
-    overrides = {"random_seed": args.seed}
-    for item in args.overrides:
-        if "=" not in item:
-            print(f"{PROG}: error: expected NAME=VALUE, got {item!r}", file=sys.stderr)
-            return 2
-        k, v = item.split("=", 1)
-        overrides[k.strip()] = yaml.safe_load(v)
+    overrides = {"random_seed": args.seed, **dict(args.overrides)}
     if args.particles is not None:
         overrides["num_particles"] = args.particles
     try:
@@ -158,6 +156,10 @@ def main(argv=None) -> int:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     out = args.out.resolve()
+    problem = args_.output_problem(out, args.overwrite, kind="folder")
+    if problem:
+        print(f"{PROG}: error: --out: {problem}", file=sys.stderr)
+        return 1
     sim_params, real_params = config_dir() / "params.yaml", config_dir() / "real_params.yaml"
 
     sim_jobs, real_jobs, sweep_jobs = [], [], []

@@ -1,4 +1,5 @@
-"""``localization-simulate``: record a simulated RACECAR drive as a rosbag2 bag (see ``localization.sim``)."""
+"""``localization-simulate``: record a simulated RACECAR (or differential-drive) drive as a rosbag2 bag
+(see ``localization.sim``)."""
 from __future__ import annotations
 
 import argparse
@@ -10,7 +11,7 @@ import numpy as np
 
 from localization.core.occupancy_map import MapError
 from localization.eval.datasets import SIM_TRIALS
-from localization.sim import PHYSICS_RATE_HZ, SimConfig, SimulationError, record
+from localization.sim import PHYSICS_RATE_HZ, DiffDriveModel, SimConfig, SimulationError, differential_trial, record
 from localization.tools.args import floats, pose
 
 PROG = "localization-simulate"
@@ -34,20 +35,25 @@ def _waypoints(text: str) -> tuple:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
-        prog=PROG, description="Simulate the MIT RACECAR driving a route in a map and record a rosbag2 bag "
-                               "(/scan, /odom, ground truth /tf, /tf_static, /initialpose).",
+        prog=PROG, description="Simulate the MIT RACECAR (or a differential-drive base) driving a route in a map "
+                               "and record a rosbag2 bag (/scan, /odom, ground truth /tf, /tf_static, /initialpose).",
         epilog=f"trials: {', '.join(SIM_TRIALS)}. Example: {PROG} out_bag --trial trial2_noise0.3. "
                "Values starting with '-' need '=': --start=-6.0,20.0,-2.24")
     ap.add_argument("out", type=Path, help="bag directory to write (must not exist unless --overwrite)")
     ap.add_argument("--trial", choices=sorted(SIM_TRIALS), help="start from a predefined trial "
                     "(route, start, speed, noise); other options override it")
+    ap.add_argument("--robot", choices=("ackermann", "differential"), default=None,
+                    help="the vehicle: ackermann (the car, default) or differential (turns on the spot, wheel-encoder "
+                         "odometry at 20 Hz, 10 Hz lidar; without --trial it drives the differential trial's route "
+                         "in the Stata basement)")
     ap.add_argument("--map", help="map name or YAML (default stata_basement)")
     ap.add_argument("--start", type=pose, metavar="X,Y,YAW", help="true start pose")
     ap.add_argument("--waypoints", type=_waypoints, metavar="'X,Y;X,Y;...'|FILE", help="route to drive")
     ap.add_argument("--closed", action="store_true", default=None, help="the route is a loop (needs --duration)")
     ap.add_argument("--speed", type=float, help="cruise speed m/s (max 8)")
     ap.add_argument("--duration", type=float, help="seconds (default: until the end of the route)")
-    ap.add_argument("--seed", type=int)
+    ap.add_argument("--seed", type=int, help="random seed of the odometry and lidar noise (default: the trial's, "
+                    "else 0): the same seed records the same bag")
     ap.add_argument("--odom-noise", type=float, metavar="K", help="std of the noise on vx, vy (m/s) and wz (rad/s)")
     ap.add_argument("--speed-scale", type=float, help="odometry speed scale bias (e.g. 0.95)")
     ap.add_argument("--yaw-rate-bias", type=float, help="odometry yaw-rate bias (rad/s)")
@@ -61,13 +67,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="/initialpose = true start + offset (map frame), default 0.3,0.4,0.2")
     ap.add_argument("--kidnap-at", type=float, metavar="T", help="teleport the car T seconds after the start")
     ap.add_argument("--kidnap-to", type=pose, metavar="X,Y,YAW", help="where to teleport it")
-    ap.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3")
-    ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
+                    help="rosbag2 storage format of the bag (default sqlite3: a .db3 file; mcap for Foxglove)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing bag directory at OUT")
     return ap
 
 
 def config_from_args(args) -> SimConfig:
-    cfg = SIM_TRIALS[args.trial].config if args.trial else SimConfig()
+    if args.trial:
+        cfg = SIM_TRIALS[args.trial].config
+        if args.robot == "differential":
+            cfg = replace(cfg, car=DiffDriveModel(), speed=min(cfg.speed, DiffDriveModel().max_speed))
+    else:
+        cfg = differential_trial() if args.robot == "differential" else SimConfig()
     changes = {}
     for name, attr in (("map", "map"), ("start", "start"), ("waypoints", "waypoints"), ("closed", "closed"),
                        ("speed", "speed"), ("duration", "duration"), ("seed", "seed"),

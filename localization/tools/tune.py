@@ -42,10 +42,12 @@ from pathlib import Path
 
 from localization.core.parameters import NODE_NAME, PARAMETERS, ParameterError, Parameters
 from localization.eval.datasets import REAL_BAGS
+from localization.eval.progress import progress_enabled
 from localization.eval.replay import ReplayError
 from localization.eval.tuning import (
     BASELINE_ATTR,
     DEFAULT_STUDY,
+    DUPLICATE_ATTR,
     ScoreWeights,
     TuneConfig,
     TuneError,
@@ -67,10 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="rosbag2 directory, .db3, .mcap or ROS 1 .bag")
     ap.add_argument("--map", required=True, help="map_server YAML (or a map name in the maps directory)")
     ap.add_argument("--params", help="starting parameter file, or a name in the package's config/ (params, "
-                    "real_params); default: the built-in defaults")
+                    "real_params); default: the built-in defaults, or config/real_params.yaml when the bags have the "
+                    "car's odometry topic (/vesc/odom) and not /odom (said on stderr)")
     ap.add_argument("--space", help="search space YAML (default: the package's config/tune_space.yaml)")
-    ap.add_argument("--trials", type=int, default=40, help="trials to run now (added to the study's; default 40)")
-    ap.add_argument("--jobs", type=int, default=1, help="worker processes on this machine (default 1)")
+    ap.add_argument("--trials", type=_at_least_one, default=40,
+                    help="trials to run now, at least 1 (added to the study's; default 40)")
+    ap.add_argument("--jobs", type=_at_least_one, default=1, help="worker processes on this machine (default 1)")
     ap.add_argument("--storage", help="Optuna storage URL (sqlite:///f.db, postgresql://...) or a journal file path "
                     "(default: DIR/study.journal)")
     ap.add_argument("--study", default=DEFAULT_STUDY, help=f"study name (default {DEFAULT_STUDY})")
@@ -90,12 +94,23 @@ def build_parser() -> argparse.ArgumentParser:
                     help="added per unit of filter time / bag duration above 1 (default %(default)s)")
     ap.add_argument("--max-realtime", type=args_.positive_float, default=ScoreWeights.max_realtime,
                     help="cut a bag (and count it lost) past this many times real time (default %(default)s)")
-    ap.add_argument("--quiet", action="store_true", help="no per-trial lines on stderr")
+    ap.add_argument("--quiet", action="store_true", help="nothing on stderr but errors (no progress bar, no "
+                    "per-trial lines)")
     ap.add_argument("--compare", metavar="PARAMS", help="do not tune: score the starting parameters and this "
                     "parameter file (e.g. DIR/best_params.yaml) on the bags with --compare-seeds")
     ap.add_argument("--compare-seeds", type=args_.floats, default=(11, 12, 13), metavar="S,S,...",
                     help="filter seeds of --compare (default 11,12,13: not the tuning's)")
     return ap
+
+
+def _at_least_one(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
 
 
 def _initial_poses(args) -> list:
@@ -110,15 +125,12 @@ def _initial_poses(args) -> list:
 
 
 def make_config(args) -> TuneConfig:
-    if args.trials < 0:
-        raise TuneError(f"--trials must be >= 0, got {args.trials}")
-    if args.jobs < 1:
-        raise TuneError(f"--jobs must be >= 1, got {args.jobs}")
     for b in args.bags:
         if not Path(b).exists():
             raise TuneError(f"bag not found: {b}")
     space = load_space(args.space)
-    start = args_.load_parameters(args.params, {})
+    start = args_.parameters_for_bags(args.params, {}, args.bags, args.odom_topic, PROG,
+                                      say=(lambda _line: None) if args.quiet else None)
     return TuneConfig(bags=[str(b) for b in args.bags], map=args.map, start=dict(start), space=space,
                       storage=args.storage or str(args.out / "study.journal"), study=args.study, seed=args.seed,
                       weights=ScoreWeights(args.lost_penalty, args.time_weight, args.max_realtime),
@@ -164,15 +176,15 @@ def _fmt(v):
 
 def write_trials_csv(path: Path, study, n_bags: int, space_names: list) -> Path:
     trials = study.get_trials(deepcopy=False)
-    cols = (["number", "state", "value", "baseline", "wall_s", "mean_error"]
+    cols = (["number", "state", "value", "baseline", "repeat_of", "wall_s", "mean_error"]
             + [f"{k}_{b}" for b in range(n_bags) for k in ("error", "lost", "realtime")] + space_names)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(cols)
         for t in trials:
             ua = t.user_attrs
-            row = [t.number, t.state.name, t.value, bool(ua.get(BASELINE_ATTR)), ua.get("wall_s"),
-                   ua.get("mean_error")]
+            row = [t.number, t.state.name, t.value, bool(ua.get(BASELINE_ATTR)), ua.get(DUPLICATE_ATTR),
+                   ua.get("wall_s"), ua.get("mean_error")]
             row += [ua.get(f"{k}_{b}") for b in range(n_bags) for k in ("error", "lost", "realtime")]
             row += [t.params.get(n) for n in space_names]
             w.writerow([_fmt(v) for v in row])
@@ -227,6 +239,7 @@ def summarize(cfg: TuneConfig, study, out: Path, elapsed: float, files: dict) ->
         "n_trials": len(trials), "n_complete": len(complete),
         "n_pruned": sum(t.state == states.PRUNED for t in trials),
         "n_failed": sum(t.state == states.FAIL for t in trials),
+        "n_repeated": sum(DUPLICATE_ATTR in t.user_attrs for t in trials),
         "best_value": None if best is None else best.value,
         "best_trial": None if best is None else best.number,
         "best_params": None if best is None else best.params,
@@ -244,15 +257,35 @@ def summarize(cfg: TuneConfig, study, out: Path, elapsed: float, files: dict) ->
     }
 
 
+def bag_errors(errors, sources=None) -> str:
+    """Per-bag errors rounded for reading: millimetres for metres (truth or reference track), three
+    decimals for 1 − agreement (not metres)."""
+    if errors is None:
+        return "n/a"
+    sources = sources or ["truth"] * len(errors)
+    out = []
+    for e, src in zip(errors, sources):
+        if e is None or (isinstance(e, float) and not math.isfinite(e)):
+            out.append("n/a")
+        elif src == "agreement":
+            out.append(f"{e:.3f} (1 - agreement)")
+        else:
+            out.append(f"{1000 * e:.0f} mm")
+    return ", ".join(out)
+
+
 def human_summary(s: dict) -> str:
     def num(v, spec=".4f"):
         return "n/a" if v is None else f"{v:{spec}}"
 
+    src = s["error_sources"]
     lines = [f"study {s['study']} ({s['storage']}): {s['n_trials']} trials ({s['n_complete']} complete, "
-             f"{s['n_pruned']} pruned, {s['n_failed']} failed)",
-             f"bag errors scored against: {s['error_sources']}",
-             f"baseline score {num(s['baseline_value'])}  errors {s['baseline_errors']}",
-             f"best score     {num(s['best_value'])}  errors {s['best_errors']}  (trial {s['best_trial']})",
+             f"{s['n_pruned']} pruned, {s['n_failed']} failed"
+             + (f", {s['n_repeated']} repeated parameter sets not re-run" if s.get("n_repeated") else "") + ")",
+             f"bag errors scored against: {', '.join(map(str, src)) if src else 'n/a'}",
+             f"baseline score {num(s['baseline_value'])}  errors {bag_errors(s['baseline_errors'], src)}",
+             f"best score     {num(s['best_value'])}  errors {bag_errors(s['best_errors'], src)}  "
+             f"(trial {s['best_trial']})",
              f"wall time per trial {num(s['wall_s_per_trial_mean'], '.2f')} s; this run {s['elapsed_s']:.0f} s"]
     if s["best_params"]:
         lines.append("best parameters: " + ", ".join(f"{k}={_fmt(v)}" for k, v in s["best_params"].items()))
@@ -272,8 +305,10 @@ def compare(cfg: TuneConfig, args) -> int:
     else:
         for name in ("start", "compare"):
             r = result[name]
+            metres = "agreement" not in r["sources"]  # the mean is in metres only when every bag's error is
             print(f"{name:<8} {args.params if name == 'start' else args.compare}: error per bag "
-                  f"{', '.join(f'{e:.4f}' for e in r['errors'])} ({', '.join(r['sources'])}), mean {r['error']:.4f}; "
+                  f"{bag_errors(r['errors'], r['sources'])} ({', '.join(r['sources'])}), mean "
+                  f"{bag_errors([r['error']], ['truth' if metres else 'agreement'])}; "
                   f"score {r['score']:.4f}; {r['lost']} lost; {r['wall_s']:.1f} s per evaluation")
     return 0
 
@@ -287,7 +322,8 @@ def main(argv=None) -> int:
         if args.compare:
             return compare(cfg, args)
         args.out.mkdir(parents=True, exist_ok=True)
-        study = run_workers(cfg, args.trials, args.jobs, progress=not args.quiet)
+        study = run_workers(cfg, args.trials, args.jobs, progress=not args.quiet,
+                            bar=False if args.quiet else progress_enabled())
         files = {}
         if any(t.state.name == "COMPLETE" for t in study.get_trials(deepcopy=False)):
             best = best_parameters(cfg, study)
