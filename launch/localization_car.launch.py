@@ -7,6 +7,14 @@ nav2_lifecycle_manager and, for rviz:=true, rviz2).
     ros2 launch localization localization_car.launch.py map:=/path/to/my_map.yaml lifecycle:=true
     ros2 launch localization localization_car.launch.py params_file:=/path/params.yaml \\
         set_initial_pose:=true initial_pose_x:=0.8 initial_pose_y:=-0.3 initial_pose_yaw:=1.26
+    ros2 launch localization localization_car.launch.py publish_tf:=map_to_particle_filter_frame
+
+TF (REP-105): ``publish_tf:=map_to_odom`` (the default here) makes the node broadcast map → odom,
+so with the VESC driver's odom → base_link and the laser mount (robot_state_publisher or a
+static transform base_link → laser) the tree is map → odom → base_link → laser: nav2 gets its
+map → odom, RViz (fixed frame map, view following base_link) places the scans in their own
+frame. ``publish_tf:=map_to_particle_filter_frame`` is the course's map → base_link_pf beside
+the odometry tree; ``none`` broadcasts nothing.
 
 ``map`` is a map name of the package's maps/ (``basement_fixed``, ``stata_basement``,
 ``building_31``) or the path of a map_server YAML. map_server is a lifecycle node: a
@@ -41,7 +49,7 @@ def _nodes(context):
         raise RuntimeError(f"map not found: {map_yaml} (map:=NAME of {os.path.join(share, 'maps')} or a YAML path)")
     use_sim_time = get("use_sim_time").lower() in ("true", "1")
     lifecycle = get("lifecycle").lower() in ("true", "1")
-    pf_params = {"use_sim_time": use_sim_time}
+    pf_params = {"use_sim_time": use_sim_time, "publish_tf": get("publish_tf")}
     if get("set_initial_pose").lower() in ("true", "1"):
         pf_params.update({"set_initial_pose": True, "initial_pose.x": float(get("initial_pose_x")),
                           "initial_pose.y": float(get("initial_pose_y")),
@@ -74,6 +82,9 @@ def generate_launch_description():
         DeclareLaunchArgument("lifecycle", default_value="false",
                               description="start particle_filter_lifecycle, managed by the lifecycle manager"),
         DeclareLaunchArgument("use_sim_time", default_value="false", description="use /clock (bag replay)"),
+        DeclareLaunchArgument("publish_tf", default_value="map_to_odom",
+                              description="the node's TF: map_to_odom (REP-105: map -> odom, for nav2), "
+                                          "map_to_particle_filter_frame (map -> base_link_pf) or none"),
         DeclareLaunchArgument("set_initial_pose", default_value="false",
                               description="start from initial_pose_x/y/yaw instead of waiting for /initialpose"),
         DeclareLaunchArgument("initial_pose_x", default_value="0.0", description="m, map frame"),

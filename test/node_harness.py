@@ -154,8 +154,10 @@ class Probe(Node):
         self.poses: list[Odometry] = []
         self.particles: list[PoseArray] = []
         self.tf: list = []  # TransformStamped
+        self.corrections: list[PoseWithCovarianceStamped] = []  # /pf/pose: the sensor-corrected estimates
         self.subs = [
             self.create_subscription(Odometry, "/pf/pose/odom", self._keep(self.poses), 1000),
+            self.create_subscription(PoseWithCovarianceStamped, "/pf/pose", self._keep(self.corrections), 1000),
             self.create_subscription(PoseArray, "/pf/particles", self._keep(self.particles), 1000),
             self.create_subscription(TFMessage, "/tf", lambda m: self._add(self.tf, *m.transforms), 1000),
         ]
@@ -172,9 +174,13 @@ class Probe(Node):
         with self.lock:
             return list(self.poses), list(self.particles), list(self.tf)
 
+    def corrections_snapshot(self) -> list:
+        with self.lock:
+            return list(self.corrections)
+
     def clear(self):
         with self.lock:
-            self.poses.clear(), self.particles.clear(), self.tf.clear()
+            self.poses.clear(), self.particles.clear(), self.tf.clear(), self.corrections.clear()
 
     def wait_connected(self, timeout=10.0, outputs=True):
         pubs = [self.map_pub, self.initialpose_pub, self.scan_pub, self.odom_pub]

@@ -17,6 +17,7 @@ FACADE_RANK = 5  # localization/*.py: the course's module names
 ROS_MODULES = ("rclpy", "tf2_ros", "builtin_interfaces", "rcl_interfaces", "rosidl_runtime_py", "launch")
 # the only modules that talk ROS (DDS): the node's package, the DDS player, the live latency benchmark
 ROS_ALLOWED = ("localization.ros.", "localization.tools.play", "localization.benchmarks.latency",
+               "localization.benchmarks.cold_start",
                "localization.particle_filter")
 
 

@@ -268,12 +268,13 @@ def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
     r = runner(sensor_update_thread=True)
     entered, release, odoms, scans = block_sensor_updates(r, drive)
     try:
-        r.send_odom(odoms[0][2])
+        for _, _, msg in odoms[:3]:  # odometry up to the scan's time: the scan is used when it arrives
+            r.send_odom(msg)
         r.probe.scan_pub.publish(scans[1][2])  # not waited for: its update blocks
         assert entered.wait(5.0)
-        for _, _, msg in odoms[1:11]:
+        for _, _, msg in odoms[3:13]:
             r.send_odom(msg)  # each is handled (and its pose published) during the sensor update
-        want = {h.ns_key(t) for t, _, _ in odoms[1:11]}
+        want = {h.ns_key(t) for t, _, _ in odoms[3:13]}
         assert h.wait_until(lambda: want <= {h.key(m.header.stamp) for m in r.probe.snapshot()[0]}, 5.0)
         assert r.node.counts["scan"] == 0  # the sensor update is still running
         moving = [odom_pose(m) for m in r.probe.snapshot()[0] if h.key(m.header.stamp) in want]
@@ -284,10 +285,10 @@ def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
     assert h.wait_until(lambda: any(h.key(m.header.stamp) == h.ns_key(scans[1][0]) for m in r.probe.snapshot()[1]),
                         5.0)
     # the odometry queued during the update is applied before the next scan: nothing is lost
-    r.send_odom(odoms[11][2])
-    assert h.wait_until(lambda: h.key(r.probe.snapshot()[0][-1].header.stamp) == h.ns_key(odoms[11][0]), 5.0)
+    r.send_odom(odoms[13][2])
+    assert h.wait_until(lambda: h.key(r.probe.snapshot()[0][-1].header.stamp) == h.ns_key(odoms[13][0]), 5.0)
     travelled = np.hypot(*(odom_pose(r.probe.snapshot()[0][-1])[:2] - drive.initial_guess[:2]))
-    assert travelled > 0.8 * 2.0 * 0.95 * (odoms[11][0] - odoms[0][0]) * 1e-9
+    assert travelled > 0.8 * 2.0 * 0.95 * (odoms[13][0] - odoms[0][0]) * 1e-9
 
 
 def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
@@ -296,13 +297,14 @@ def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
     r = runner()
     assert r.node.scan_worker is None
     entered, release, odoms, scans = block_sensor_updates(r, drive)
-    r.send_odom(odoms[0][2])
+    for _, _, msg in odoms[:3]:  # odometry up to the scan's time: the scan is used when it arrives
+        r.send_odom(msg)
     r.probe.scan_pub.publish(scans[1][2])
     assert entered.wait(5.0)
-    for _, _, msg in odoms[1:11]:
+    for _, _, msg in odoms[3:13]:
         r.probe.odom_pub.publish(msg)  # queued behind the running sensor update
     time.sleep(0.3)
-    want = [h.ns_key(t) for t, _, _ in odoms[1:11]]
+    want = [h.ns_key(t) for t, _, _ in odoms[3:13]]
     assert not set(want) & {h.key(m.header.stamp) for m in r.probe.snapshot()[0]}  # still blocked
     release.set()
     assert h.wait_until(lambda: r.node.counts["scan"] == 1, 10.0)
@@ -310,7 +312,7 @@ def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
     got = [h.key(m.header.stamp) for m in r.probe.snapshot()[0] if h.key(m.header.stamp) in set(want)]
     assert got == want  # every one, in order
     travelled = np.hypot(*(odom_pose(r.probe.snapshot()[0][-1])[:2] - drive.initial_guess[:2]))
-    assert travelled > 0.8 * 2.0 * 0.95 * (odoms[10][0] - odoms[0][0]) * 1e-9
+    assert travelled > 0.8 * 2.0 * 0.95 * (odoms[12][0] - odoms[0][0]) * 1e-9
 
 
 def run_seeded(runner, drive, seed, seconds=1.0):

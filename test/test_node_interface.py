@@ -1,4 +1,4 @@
-"""The node's interface for a car and a nav2 user (issue 11), over DDS with a live node:
+"""The node's interface for a car and a nav2 user, over DDS with a live node:
 /diagnostics and watchdogs, initial pose from parameters, laser pose from /tf_static, the
 lifecycle variant, pose persistence, request_nomotion_update, the cold start with an empty range
 table cache, and the command line (--help, a missing parameter file, a clean Ctrl-C).
@@ -235,8 +235,8 @@ def test_request_nomotion_update(runner, drive):
     client = r.probe.create_client(Empty, "/request_nomotion_update")
     assert client.wait_for_service(timeout_sec=5.0)
 
-    def scan_pose_count(t_ns):
-        return sum(1 for m in r.probe.snapshot()[0] if h.key(m.header.stamp) == h.ns_key(t_ns))
+    def scan_pose_count(t_ns):  # sensor-corrected estimates on /pf/pose, stamped with the scan's time
+        return sum(1 for m in r.probe.corrections_snapshot() if h.key(m.header.stamp) == h.ns_key(t_ns))
     r.send_scan(scans[0][2])  # the first scan after an initialisation always updates
     r.send_scan(scans[1][2])  # no motion: no update
     r.settle(0.3)
@@ -263,7 +263,7 @@ def test_pose_persisted_and_restored(runner, drive, tmp_path):
     assert np.allclose(stored.pose, final, atol=1e-3)  # the last write is at shutdown
 
     r2 = runner(**params)
-    assert r2.node.localizer.ready  # from the file, before any map or /initialpose
+    assert not r2.node.localizer.ready  # the pose is set from the file; localizing needs the map too
     r2.send_map(h.map_msg("stata_basement"))
     assert r2.node.localizer.ready and r2.node.counts["initialpose"] == 0
     assert np.hypot(*(r2.node.localizer.estimate.pose[:2] - stored.pose[:2])) < 0.3
@@ -351,16 +351,31 @@ def test_cold_start_builds_the_table_off_thread_and_reports_truthfully(runner, d
         k += 1
         time.sleep(0.02)
     assert h.wait_until(lambda: r.node.counts["map"] == 1, 60.0)
-    assert r.node.watchdog.scans_waiting_for_table > 0 and r.node.watchdog.odom_waiting_for_table > 0
+    w = r.node.watchdog
+    assert w.scans_waiting_for_table > 0 and w.odom_waiting_for_table > 0
+    # the scans that came during the build could not be used: /diagnostics says so (WARN)
+    status = r.node.diagnostic_status()
+    assert status.level >= WARN and "scans-dropped" in {p.key for p in status.problems}
+    assert "range table" in status.message and w.scans_dropped == w.scans_waiting_for_table
     assert h.wait_until(lambda: len(r.probe.snapshot()[0]) > 0, 5.0)  # the first pose once the table is ready
+    # the odometry of the build was kept: the first pose is where the car drove meanwhile, not where it started
+    first = r.probe.snapshot()[0][0]
+    t_first = first.header.stamp.sec * 10**9 + first.header.stamp.nanosec
+    travelled = drive.speed * (t_first - h.T0_NS) * 1e-9
+    assert travelled > 0.5
+    assert np.hypot(*(odom_xy(first) - drive.truth(t_first)[:2])) < 0.5 + 0.05 * travelled
     r.play(events[k:k + 20])
     r.settle(0.2)
     log = capfd.readouterr().err
-    assert "range table: building it" in log and "expected ~" in log
+    assert "range table: building it" in log and "expected ~" in log and "odometry is kept meanwhile" in log
     assert "range table built in" in log
     assert "no map received yet" not in log and "stamp jumped" not in log, log
-    assert "waiting for the range table" in log
+    assert "waiting for the sensor model to prepare the map" in log  # the scans' throttled line
     assert list((tmp_path / "cache").iterdir())  # cached for the next start
+
+
+def odom_xy(msg) -> np.ndarray:
+    return np.array([msg.pose.pose.position.x, msg.pose.pose.position.y])
 
 
 # ------------------------------------------------------------------ command line
@@ -466,8 +481,10 @@ def test_car_launch_file_arguments_and_referenced_files():
                 for k in n.keywords if k.arg == "package" and isinstance(k.value, ast.Constant)}
     assert {"nav2_map_server", "nav2_lifecycle_manager", "rviz2"} <= packages
     package_xml = (REPO / "package.xml").read_text()
-    for dep in ("nav2_map_server", "nav2_lifecycle_manager", "rviz2", "diagnostic_msgs", "lifecycle_msgs"):
+    for dep in ("diagnostic_msgs", "lifecycle_msgs"):  # the node's own
         assert f"<exec_depend>{dep}</exec_depend>" in package_xml, dep
+    for dep in packages - {"localization"}:  # the launch's bringup pieces: named for whoever installs them
+        assert dep in package_xml, dep
     setup = (REPO / "setup.py").read_text()
     assert "particle_filter_lifecycle = localization.ros.lifecycle_node:main" in setup
     assert 'glob("rviz/*.rviz")' in setup and 'glob("launch/*.py")' in setup

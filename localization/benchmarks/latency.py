@@ -11,7 +11,11 @@ it **at real time**, cyclically until ``--duration`` seconds have been streamed,
 bag's start pose before it. Every scan and odometry message is restamped with the wall clock
 just before it is published, so
 
-    latency = (wall time the pose on /pf/pose/odom with that scan's stamp is received) − stamp
+    latency = (wall time the corrected pose of that scan is received on /pf/pose) − scan stamp
+
+(the node stamps a correction with the time it describes, the scan's mid-sweep time, and
+/pf/pose/odom with each odometry message's time + ``odom_time_offset``; both are matched here
+to the message they came from, to the microsecond)
 
 covers DDS both ways, queueing in the node, the sensor update and the pose/particles/TF output.
 Prints median / p95 / max latency, the fraction of scans that produced a sensor update and a
@@ -84,6 +88,19 @@ def _peak_rss_mb(pid: int) -> dict:
     return {"node_peak_rss_mb": out.get("VmHWM"), "node_rss_mb": out.get("VmRSS")}
 
 
+def _us(stamp_ns: int, offset_s: float) -> int:
+    """The time ``stamp + offset`` in whole microseconds (the node computes it in float seconds)."""
+    return stamp_ns // 1000 + round(offset_s * 1e6)
+
+
+def _match(us: int, sent: dict):
+    """The key of ``sent`` within 2 µs of ``us`` (float seconds round either way), or None."""
+    for key in (us, us - 1, us + 1, us - 2, us + 2):
+        if key in sent:
+            return key
+    return None
+
+
 def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: str | None = None,
                     params_file=None, ready_timeout: float = 180.0, progress=None, extra_params=()) -> dict:
     """Run the node, stream the real bags into it at real time, return the latency statistics."""
@@ -145,10 +162,11 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
 
     def on_pose_or_cloud(msg):
         clouds.set()
-        if isinstance(msg, Odometry):
+        if isinstance(msg, (Odometry, PoseWithCovarianceStamped)):
             on_pose(msg)
 
     node.create_subscription(Odometry, "/pf/pose/odom", on_pose_or_cloud, 100)
+    node.create_subscription(PoseWithCovarianceStamped, "/pf/pose", on_pose_or_cloud, 100)
     # raw: the cloud only signals readiness; decoding 500 poses per scan would load this process
     node.create_subscription(PoseArray, "/pf/particles", on_pose_or_cloud, 5, raw=True)
     executor = SingleThreadedExecutor()
@@ -186,7 +204,15 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
                 return False
         return False
 
-    scans_sent, odoms_sent = {}, {}
+    scans_sent, odoms_sent = {}, {}  # µs of the time the output describes -> (header stamp ns, stream time s)
+    from localization.core.parameters import Parameters
+    from localization.core.scan import scan_time
+    from localization.ros.conversions import scan_from_msg
+    odom_offset = Parameters.from_yaml(params_file).odom_time_offset
+
+    def sweep_offset(msg) -> float:
+        scan = scan_from_msg(msg)
+        return scan_time(scan) - scan.stamp
     result = {"particles": particles, "ray_caster": ray_caster, "scan_hz": 40.0, "odom_hz": 50.0,
               "extra_params": list(extra_params), "load_average_start": os.getloadavg()[0]}
     try:
@@ -216,11 +242,11 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
                         time.sleep(delay)
                     stamp = time.time_ns()
                     _set_stamp(msg.header, stamp)
-                    if topic == "/scan":
-                        scans_sent[stamp] = streamed + t_rel
+                    if topic == "/scan":  # keyed by the time its correction describes (µs)
+                        scans_sent[_us(stamp, sweep_offset(msg))] = (stamp, streamed + t_rel)
                         pub_scan.publish(msg)
-                    else:
-                        odoms_sent[stamp] = streamed + t_rel
+                    else:  # keyed by the time its pose describes (µs)
+                        odoms_sent[_us(stamp, odom_offset)] = (stamp, streamed + t_rel)
                         pub_odom.publish(msg)
                 streamed += min(msgs[-1][0], duration - streamed)
             rounds += 1
@@ -244,12 +270,15 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
         received = list(poses)
     scan_lat, scan_when, odom_lat = [], [], []
     for recv, stamp in received:
-        if stamp in scans_sent:
-            scan_lat.append((recv - stamp) * 1e-6)
-            scan_when.append(scans_sent.pop(stamp))
-        elif stamp in odoms_sent:
-            odom_lat.append((recv - stamp) * 1e-6)
-            odoms_sent.pop(stamp)
+        key = _match(stamp // 1000, scans_sent)
+        if key is not None:
+            sent, when = scans_sent.pop(key)
+            scan_lat.append((recv - sent) * 1e-6)
+            scan_when.append(when)
+            continue
+        key = _match(stamp // 1000, odoms_sent)
+        if key is not None:
+            odom_lat.append((recv - odoms_sent.pop(key)[0]) * 1e-6)
     if not scan_lat:
         return {**result, "error": f"no pose came back for any scan; node log: {log.name}"}
     node_log = Path(log.name).read_text(errors="replace")
@@ -296,8 +325,8 @@ def format_result(r: dict) -> str:
                  f"\n  where the time went inside the node (scan received -> pose published; wait = queued for "
                  f"the sensor-update thread (0 unless sensor_update_thread), deserialize = CDR -> LaserScan, "
                  f"convert = message -> ScanData, "
-                 f"update = sensor update + resampling, "
-                 f"publish = pose, cloud, health, TF):\n    {r.get('node_breakdown') or 'not reported'}")
+                 f"update = waiting for the odometry that reaches the scan's time + sensor update + resampling, "
+                 f"publish = the correction on /pf/pose):\n    {r.get('node_breakdown') or 'not reported'}")
     return text
 
 

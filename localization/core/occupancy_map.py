@@ -32,6 +32,17 @@ class MapError(ValueError):
     """An unreadable or inconsistent map."""
 
 
+ORIGIN_DECIMALS = 9  # the origin (m, m, rad) is hashed rounded to 1e-9
+
+
+def quantized_geometry(resolution: float, origin) -> list[float]:
+    """[resolution, x, y, yaw] as hashed: the resolution as the shortest decimal that names its float32
+    value (nav_msgs/MapMetaData carries a float32: 0.0504 arrives as 0.05040000006556511 and is 0.0504
+    again here), the origin rounded to ORIGIN_DECIMALS. A resolution or origin read from YAML as a
+    short decimal is unchanged, so digests of YAML maps stay what they were."""
+    return [float(str(np.float32(resolution))), *(round(float(v), ORIGIN_DECIMALS) for v in origin)]
+
+
 @dataclass
 class OccupancyMap:
     data: np.ndarray  # (height, width) int8, row 0 at the bottom, -1 unknown
@@ -133,10 +144,14 @@ class OccupancyMap:
 
     @property
     def digest(self) -> str:
-        """A content hash (cells, resolution, origin): a key for caches derived from the map."""
+        """A content hash (cells, resolution, origin): a key for caches derived from the map. The
+        resolution and origin are hashed quantized (``quantized_geometry``), so the map read from its
+        YAML and the same map received as a nav_msgs/OccupancyGrid (float32 resolution, yaw through a
+        quaternion) have one digest, hence one range table."""
         def compute():
             h = hashlib.sha1(self.data.tobytes())
-            h.update(np.asarray([self.resolution, *self.origin, *self.data.shape], dtype=float).tobytes())
+            h.update(np.asarray([*quantized_geometry(self.resolution, self.origin), *self.data.shape],
+                                dtype=float).tobytes())
             return h.hexdigest()[:16]
         return self._cached("digest", compute)
 

@@ -93,11 +93,12 @@ def split_ros_args(argv) -> tuple[list[str], list[str]]:
 
 
 def resolve_params_path(name_or_path) -> Path:
-    """A parameter file as given, or a bare name (``real_params``) in the package's ``config/``."""
+    """A parameter file as given when it exists or has a folder, else a bare name (``real_params``
+    or ``real_params.yaml``) in the package's ``config/``."""
     path = Path(name_or_path).expanduser()
-    if path.suffix in (".yaml", ".yml") or path.exists() or len(path.parts) > 1:
+    if path.exists() or len(path.parts) > 1:
         return path
-    return config_dir() / f"{name_or_path}.yaml"
+    return config_dir() / (path.name if path.suffix in (".yaml", ".yml") else f"{path.name}.yaml")
 
 
 def cache_dir() -> Path:

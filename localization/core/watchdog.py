@@ -16,6 +16,9 @@ Checks (``t_x`` = seconds since the last x, or since the reference when x never 
     no input      neither arrives, t > max(odom_timeout, scan_timeout) after start  → WARN
     no map        no map t > map_timeout after start                               → WARN
     TF            the laser pose lookup failed for longer than tf_timeout           → WARN
+    scans dropped a scan was not used (no map, range table being built, no initial
+                  pose, sensor-update queue full) in the last ``window`` seconds     → WARN
+    lost          localizing and health < health_lost_floor                       → ERROR
     map failed    the map was rejected or its range table could not be built       → ERROR
 
 A WARN names the subscribed topic and the topics of the same type that do exist (the node lists
@@ -29,7 +32,7 @@ publishing).
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,8 +76,10 @@ class Watchdog:
 
     def __init__(self, start: float, *, odom_timeout: float = 0.5, scan_timeout: float = 0.5,
                  map_timeout: float = 5.0, tf_timeout: float = 1.0, scan_topic: str = "/scan",
-                 odom_topic: str = "/odom", map_topic: str = "/map", window: float = WINDOW_S):
+                 odom_topic: str = "/odom", map_topic: str = "/map", window: float = WINDOW_S,
+                 health_lost_floor: float = 0.0):
         self.start = start
+        self.health_lost_floor = health_lost_floor
         self.odom_timeout, self.scan_timeout = odom_timeout, scan_timeout
         self.map_timeout, self.tf_timeout = map_timeout, tf_timeout
         self.scan_topic, self.odom_topic, self.map_topic = scan_topic, odom_topic, map_topic
@@ -89,6 +94,8 @@ class Watchdog:
         self.tf_failing_since: float | None = None
         self.tf_detail = ""
         self._updates: deque = deque()  # (now, {phase: seconds}) of sensor updates
+        self._drops: deque = deque()  # (now, count, reason) of scans not used
+        self.scans_dropped = 0  # over the whole run
         self._run: deque = deque(maxlen=RUN_MAX)  # (wait, convert, update, publish) of every update of the run
         self._rejected = 0
 
@@ -105,16 +112,29 @@ class Watchdog:
         if self.first_odom is None:
             self.first_odom = now
 
-    def scan_processed(self, now: float, updated: bool, phases: dict | None = None) -> None:
+    def scan_processed(self, now: float, updated: bool = False, phases: dict | None = None) -> None:
         """A scan went through the localizer; ``updated``: it produced a sensor update (and a pose);
         ``phases``: seconds spent per part (``PHASES``)."""
         self.scans_processed += 1
         if updated:
-            self.sensor_updates += 1
-            self._updates.append((now, dict(phases or {})))
-            if phases:
-                self._run.append(tuple(float(phases.get(k, 0.0)) for k in PHASES))
+            self.sensor_update(now, phases)
         self._trim(now)
+
+    def sensor_update(self, now: float, phases: dict | None = None) -> None:
+        """A sensor-corrected estimate was published; ``phases``: seconds per part of its scan's way
+        (``PHASES``), None when unknown (counted in the rate, not in the latency)."""
+        self.sensor_updates += 1
+        self._updates.append((now, dict(phases or {})))
+        if phases:
+            self._run.append(tuple(float(phases.get(k, 0.0)) for k in PHASES))
+        self._trim(now)
+
+    def scans_not_used(self, now: float, count: int, reason: str) -> None:
+        """``count`` scans were dropped (not used by the filter) because of ``reason``."""
+        if count > 0:
+            self.scans_dropped += count
+            self._drops.append((now, int(count), reason))
+            self._trim(now)
 
     def map_building(self, now: float, detail: str = "") -> None:
         self.last_map = now
@@ -141,6 +161,8 @@ class Watchdog:
     def _trim(self, now: float) -> None:
         while self._updates and self._updates[0][0] < now - self.window:
             self._updates.popleft()
+        while self._drops and self._drops[0][0] < now - self.window:
+            self._drops.popleft()
 
     # ------------------------------------------------------------------ judgement
     def latency(self, now: float) -> dict:
@@ -172,9 +194,20 @@ class Watchdog:
         span = min(self.window, max(now - self.start, 1e-9))
         return len(self._updates) / span
 
-    def problems(self, now: float, *, ready: bool = False, waiting_for: str = "",
+    def problems(self, now: float, *, ready: bool = False, waiting_for: str = "", health: float = math.nan,
                  odom_topics=(), scan_topics=()) -> list:
         out = []
+        self._trim(now)
+        if ready and math.isfinite(health) and health < self.health_lost_floor:
+            out.append(Problem("lost", ERROR, f"lost: scan-map agreement {health:.2f} is below health_lost_floor "
+                               f"{self.health_lost_floor:.2f} (the scans do not match the map at the estimate)"))
+        if self._drops:
+            reasons = Counter()
+            for _, count, reason in self._drops:
+                reasons[reason] += count
+            text = "; ".join(f"{n} {reason}" for reason, n in reasons.most_common())
+            out.append(Problem("scans-dropped", WARN, f"{sum(reasons.values())} scans not used in the last "
+                               f"{self.window:g} s: {text}"))
         t_scan, t_odom = _since(now, self.last_scan), _since(now, self.last_odom)
         scans_arrive = t_scan <= self.scan_timeout
         odom_arrives = t_odom <= self.odom_timeout
@@ -212,7 +245,7 @@ class Watchdog:
 
     def status(self, now: float, *, ready: bool, waiting_for: str = "", health: float = math.nan,
                particles: int = 0, dropped: int = 0, odom_topics=(), scan_topics=()) -> Status:
-        problems = self.problems(now, ready=ready, waiting_for=waiting_for, odom_topics=odom_topics,
+        problems = self.problems(now, ready=ready, waiting_for=waiting_for, health=health, odom_topics=odom_topics,
                                  scan_topics=scan_topics)
         level = problems[0].level if problems else OK
         if problems:
@@ -228,7 +261,7 @@ class Watchdog:
             "scan to pose latency p95 (ms)": _ms(lat["total"][1]),
             "scans received": str(self.scans_received),
             "scans processed": str(self.scans_processed),
-            "scans dropped": str(dropped),
+            "scans dropped": str(dropped + self.scans_dropped),
             "sensor updates": str(self.sensor_updates),
             "scans while the range table was built": str(self.scans_waiting_for_table),
             "particles": str(particles),

@@ -8,7 +8,10 @@
 
 The same wiring as ``ParticleFilterNode`` (``node.LocalizationMixin``), mapped onto the
 transitions, so nav2's lifecycle_manager can start it beside map_server. Parameters are declared
-at construction (read-only, as in the plain node).
+at construction (read-only, as in the plain node). Unconfigured it logs one line saying what it
+waits for; in every state (unconfigured, inactive, active, finalized) SIGINT and SIGTERM end it
+cleanly with exit code 0 (``node.spin_node``). Cleanup logs the run's statistics, and the next
+configure starts them again from zero.
 """
 from __future__ import annotations
 
@@ -24,6 +27,8 @@ class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
         self._declare_or_destroy()
+        self.get_logger().info(f"unconfigured: waiting for the configure transition (a lifecycle manager, or "
+                               f"'ros2 lifecycle set {self.get_fully_qualified_name()} configure')")
 
     def on_configure(self, state) -> TransitionCallbackReturn:
         try:
@@ -50,6 +55,7 @@ class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
 
     def on_shutdown(self, state) -> TransitionCallbackReturn:
         self._shutdown_wiring()
+        self.get_logger().info("finalized: nothing more to do; Ctrl-C or SIGTERM ends the process")
         return TransitionCallbackReturn.SUCCESS
 
     def destroy_node(self):

@@ -11,28 +11,46 @@ message builders -> ROS messages). See docs/node.md for topics, frames and param
 ``localization.ros.lifecycle_node`` maps them onto configure/activate/deactivate/cleanup.
 
 Threading: a SingleThreadedExecutor runs every subscription callback. The scan callback runs the
-sensor update and publishes its outputs (as nav2_amcl's laser callback does); scans arriving
-meanwhile wait in the subscription's queue (SCAN_QOS depth), odometry in its own. With
-``sensor_update_thread`` the scan callback only queues the message for a sensor-update thread
-(``scan_worker.ScanQueueWorker``: a short FIFO), so odometry poses keep flowing during an update,
-at the price of a GIL hand-over per scan (measured in docs/node.md). A map whose lookup-table
+sensor update and publishes its outputs (as nav2_amcl's laser callback does) — or, when the scan is
+newer than the odometry, the odometry callback that reaches its time does (the localizer keeps the
+scan until then); scans arriving meanwhile wait in the subscription's queue (SCAN_QOS depth),
+odometry in its own. With ``sensor_update_thread`` the scan callback only queues the message for a
+sensor-update thread (``scan_worker.ScanQueueWorker``: a short FIFO) which also publishes the
+corrections, so odometry poses keep flowing during an update, at the price of a GIL hand-over per
+scan (measured in docs/node.md). A map whose lookup-table
 ray caster needs a range table (built, or loaded from the disk cache) is prepared on a third
-thread; meanwhile inputs are counted as waiting for the table and the odometry reference keeps
-moving, and the first pose goes out as soon as the table is ready. Why not rclpy's
-MultiThreadedExecutor: docs/node.md.
+thread; meanwhile odometry goes into the localizer's history (the particles move through it once
+the table is ready), scans cannot be used and are reported as dropped, and the first pose goes
+out as soon as the table is ready. Why not rclpy's MultiThreadedExecutor: docs/node.md.
+
+Stamps (every output is stamped with the time it describes, on the scan clock; docs/node.md):
+
+    /pf/pose/odom, TF   x̂ ⊕ Δ(t_a, t'_k) at t'_k = t_k + odom_time_offset, on each odometry message k
+    /pf/pose            x̂(t_s) at the scan's time t_s, each sensor-corrected estimate once
+    /pf/particles       the cloud at the time of the newest correction published with it
+
+Each stream only moves forward: an output older than (or as old as) the last one on its stream is
+not published, unless it is more than TIME_JUMP older (a bag played again: the stream restarts).
 
 Watchdogs: ``core.watchdog.Watchdog`` records every input; a timer publishes its status on
-/diagnostics and logs each problem (no odometry while scans arrive, no scans, no map, TF) when it
-appears and every 5 s while it lasts.
+/diagnostics and logs each problem (no odometry while scans arrive, no scans, no map, TF, scans not
+used, lost: health below health_lost_floor) when it appears and every 5 s while it lasts.
+
+Command line (``prepare_args``): arguments outside ``--ros-args`` are an error; every
+``--params-file`` must exist (a bare name is looked up in the package's config/) and have a
+section for this node; unknown parameters are an error (``ros.parameters``). SIGINT and SIGTERM
+end ``spin_node`` within SPIN_WAKE_S in every lifecycle state, with exit code 0.
 """
 from __future__ import annotations
 
 import functools
+import math
 import os
 import sys
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -73,6 +91,8 @@ TABLE_KINDS = ("lookup_table", "lookup_table_exact")  # ray casters whose map se
 # seconds per (free cell x heading) ray of a range-table build, per core (the estimate in the log line)
 TABLE_SECONDS_PER_RAY = 2.5e-7
 GIL_SWITCH_INTERVAL_S = 0.0005  # see spin_node
+SPIN_WAKE_S = 0.2  # s: the executor's longest wait, so SIGINT/SIGTERM are acted on within it
+SCAN_TIMES_KEPT = 64  # scans whose way through the node is remembered until their correction (latency)
 ODOMETRY_TYPE, SCAN_TYPE = "nav_msgs/msg/Odometry", "sensor_msgs/msg/LaserScan"
 
 
@@ -122,6 +142,7 @@ class LocalizationMixin:
             raise
         self.counts = Counter()  # messages handled per input (diagnostics, tests)
         self.localizer = None
+        self.watchdog = None
         self.scan_worker = self.map_worker = None
         self._pf_subs, self._pf_timers = [], []
         self._configured = False
@@ -130,15 +151,19 @@ class LocalizationMixin:
         p = self.params
         self.localizer = Localizer(p, stdlib_logger(self))
         self.stamps = StampBook()
+        self.counts = Counter()  # a new run: the statistics start again
         self.watchdog = Watchdog(time.monotonic(), odom_timeout=p.odom_timeout, scan_timeout=p.scan_timeout,
                                  map_timeout=p.map_timeout, tf_timeout=p.tf_timeout, scan_topic=p.scan_topic,
-                                 odom_topic=p.odom_topic, map_topic=p.map_topic)
+                                 odom_topic=p.odom_topic, map_topic=p.map_topic, health_lost_floor=p.health_lost_floor)
         self.problem_log = ProblemLog()
-        self._odom_lock = threading.Lock()  # pairs the estimate with the odometry pose (map -> odom)
-        self._odom_pose = None
-        self._tf_lock = threading.Lock()
-        self._last_tf_stamp = -np.inf
-        self._last_data_stamp = None
+        self._odom_out_lock = threading.Lock()  # /pf/pose/odom and TF: one stamp order
+        self._last_odom_out = -np.inf  # s, scan clock: the newest stamp on /pf/pose/odom and TF
+        self._pose_out_lock = threading.Lock()  # /pf/pose, /pf/particles, /pf/health
+        self._last_pose_out = -np.inf  # s, scan clock: the newest stamp on /pf/pose
+        self._scan_times: dict[float, tuple] = {}  # scan time t_s -> (monotonic times of its way), for latency
+        self._worker_dropped = 0  # scans the sensor-update queue dropped, already reported
+        self._last_odom = None  # (t'_k, its odometry pose or None) of the newest odometry message
+        self._last_data_stamp = None  # s, scan clock: the newest input's time
         self._map_generation = 0
         self._laser_source = None  # "tf" | "parameters" once decided
         self._laser_lookup = None
@@ -205,11 +230,13 @@ class LocalizationMixin:
             if worker is not None:
                 worker.stop()  # no sensor update publishes through a destroyed node
         if self._configured:
-            dropped = "" if self.scan_worker is None else f", {self.scan_worker.dropped} dropped (queue full)"
+            self._report_worker_drops()
+            w = self.watchdog
             self.get_logger().info(
-                f"scans: {self.watchdog.scans_received} received, {self.counts['scan']} processed "
-                f"({self.watchdog.sensor_updates} sensor updates, {self.watchdog.scans_waiting_for_table} while "
-                f"the range table was prepared){dropped}; scan -> pose: {self.watchdog.run_summary()}")
+                f"scans: {w.scans_received} received, {w.scans_processed} processed, {w.scans_dropped} not used "
+                f"({w.scans_waiting_for_table} while the range table was prepared); {w.sensor_updates} sensor "
+                f"updates; odometry: {w.odom_count} received ({w.odom_waiting_for_table} while the range table was "
+                f"prepared, kept); scan -> pose: {w.run_summary()}")
         if self.localizer is not None and self.params.persist_pose:
             self.persist_pose()
         if not self._configured:
@@ -267,7 +294,7 @@ class LocalizationMixin:
             return
         self._map_generation += 1
         if self.params.sensor_model == "beam" and self.params.ray_caster in TABLE_KINDS:  # seconds: off-thread
-            self.localizer.map_pending = True
+            self.localizer.begin_map_preparation()
             self._log_table_start(occupancy_map)
             self.watchdog.map_building(time.monotonic(), "range table")
             self.map_worker.put((occupancy_map, self._map_generation, msg.header.frame_id))
@@ -277,9 +304,8 @@ class LocalizationMixin:
     def _log_table_start(self, occupancy_map: OccupancyMap) -> None:
         from localization.core.paths import cache_dir
         from localization.core.raycast.table_cache import cache_file_name
-        sensor = self.localizer.filter.sensor_model
-        bins = sensor.scan_theta_discretization
-        max_range = sensor.max_range_in(occupancy_map)
+        bins = self.params.scan_theta_discretization
+        max_range = (self.params.table_width - 1) * occupancy_map.resolution  # the beam model's z_max, in metres
         cached = (cache_dir() / cache_file_name(occupancy_map, max_range, bins)).is_file()
         free = int(np.count_nonzero(occupancy_map.free))
         size = f"map {occupancy_map.width}x{occupancy_map.height} cells ({free} free) x {bins} headings"
@@ -288,7 +314,7 @@ class LocalizationMixin:
         else:
             expected = free * bins * TABLE_SECONDS_PER_RAY / max(1, min(2, os.cpu_count() or 1))
             self.get_logger().info(f"range table: building it for the {size}, expected ~{expected:.0f} s "
-                                   "(cached for the next start); inputs wait meanwhile")
+                                   "(cached for the next start); odometry is kept meanwhile, scans cannot be used")
 
     def _install_map(self, item, t_put: float) -> None:
         occupancy_map, generation, frame_id = item
@@ -296,7 +322,7 @@ class LocalizationMixin:
         try:
             caster = self.localizer.prepare_ray_caster(occupancy_map)
         except Exception as exc:  # noqa: BLE001 - a map that cannot be prepared is reported, never fatal
-            self.localizer.map_pending = False
+            self.localizer.cancel_map_preparation()
             self.get_logger().error(f"map on {self.params.map_topic} rejected: preparing its ray caster failed: "
                                     f"{exc!r}")
             self.watchdog.map_failed(time.monotonic(), repr(exc))
@@ -310,7 +336,7 @@ class LocalizationMixin:
         try:
             self.localizer.set_map(occupancy_map, caster)
         except MapError as exc:
-            self.localizer.map_pending = False
+            self.localizer.cancel_map_preparation()
             self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
             self.watchdog.map_failed(time.monotonic(), str(exc))
             self.counts["map"] += 1
@@ -332,14 +358,13 @@ class LocalizationMixin:
             else:
                 self.get_logger().warning("new map: no particle lies in its free space: waiting for an initial "
                                           "pose")
-        if self.localizer.ready:  # the first pose as soon as the map is usable
-            stamp = self._last_data_stamp or 0.0
-            est = self.localizer.estimate
-            if est is not None and not replacing:
-                with self._odom_lock:
-                    odom_pose = self._odom_pose
-                self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
-            self._publish_particles(stamp)
+        if self.localizer.ready:  # the first pose as soon as the map is usable, at the newest odometry's time
+            last_odom = self._last_odom
+            if last_odom is not None and not replacing:
+                est = self.localizer.estimate_at(last_odom[0])
+                if est is not None:
+                    self._publish_odom_pose(est, last_odom[1])
+            self._publish_particles(self._last_data_stamp or 0.0)
         self.counts["map"] += 1
 
     @_counted("initialpose")
@@ -361,7 +386,7 @@ class LocalizationMixin:
     def on_reinitialize_global(self, request, response):
         stamp = self._last_data_stamp or self.get_clock().now().nanoseconds * 1e-9
         if self.localizer.initialize_global(stamp):
-            self.get_logger().info(f"global localization: {self.localizer.filter.num_particles} particles spread "
+            self.get_logger().info(f"global localization: {self.localizer.num_particles} particles spread "
                                    "over the free space of the map")
             self._publish_particles(stamp)
         return response
@@ -375,21 +400,24 @@ class LocalizationMixin:
 
     @_counted("odom")
     def on_odometry(self, msg: Odometry) -> None:
+        """The pose carried forward to this message's time t'_k on /pf/pose/odom and TF (map -> odom
+        pairs it with this message's own odometry pose), then any corrections the odometry released
+        (scans wait in the localizer for the odometry that reaches their time). Odometry that
+        arrives before the localizer is ready (no map yet, range table being built, no initial
+        pose) is kept in its history all the same."""
         self.watchdog.odom_received(time.monotonic())
         if self.localizer.map_pending and not self.localizer.has_map:
             self.watchdog.odom_waiting_for_table += 1
-        twist = twist_from_odometry(msg)
-        stamp = self.stamps.remember(msg.header.stamp)
-        if self._map_to_odom:  # map -> odom pairs the estimate with this message's odometry pose
-            odom_pose = pose_from_msg(msg.pose.pose)
-            with self._odom_lock:
-                est = self.localizer.on_odometry(twist)
-                self._odom_pose = odom_pose
-        else:
-            est, odom_pose = self.localizer.on_odometry(twist), None
-        self._last_data_stamp = stamp
+        t_odom = self.stamps.remember(msg.header.stamp) + self.params.odom_time_offset  # scan clock
+        odom_pose = pose_from_msg(msg.pose.pose) if self._map_to_odom else None
+        est = self.localizer.on_odometry(twist_from_odometry(msg))
+        if math.isfinite(t_odom):
+            self._last_data_stamp = t_odom
+            self._last_odom = (t_odom, odom_pose)
         if est is not None:  # None before a map and an initial pose (the Localizer logs that, throttled)
-            self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose)
+            self._publish_odom_pose(est, odom_pose)
+        if self.scan_worker is None:  # with the sensor-update thread, that thread publishes the corrections
+            self._publish_corrections()  # (take_corrections waits for a sensor update that runs)
 
     def on_scan(self, msg) -> None:
         """Subscription callback: the scan (serialized bytes, or a message) through the sensor update
@@ -410,31 +438,28 @@ class LocalizationMixin:
         if isinstance(msg, (bytes, bytearray, memoryview)):
             msg = deserialize_message(bytes(msg), LaserScan)
         t_deser = time.monotonic()
-        if self.localizer.map_pending and not self.localizer.has_map:
+        building = self.localizer.map_pending and not self.localizer.has_map
+        if building:
             self.watchdog.scans_waiting_for_table += 1
-        stamp = self.stamps.remember(msg.header.stamp)
+        self.stamps.remember(msg.header.stamp)
         scan = scan_from_msg(msg)
         if self._laser_source is None or self._laser_source == "parameters" and self._laser_lookup is not None:
             self._resolve_laser_pose(scan.frame_id, t_start)
         t_conv = time.monotonic()
-        est = self.localizer.on_scan(scan)
-        t_update = time.monotonic()
-        self._last_data_stamp = stamp
-        if est is not None:  # None when not ready, or no update was due
-            now = odom_pose = None
-            if self._map_to_odom:
-                with self._odom_lock:  # an estimate and odometry pose that belong together
-                    now, odom_pose = self.localizer.estimate, self._odom_pose
-            # stamped with the scan's header stamp (est.stamp is its mid-sweep time with align_odometry)
-            self._publish_pose(PoseEstimate(stamp, est.pose, est.covariance), odom_pose, now)
-            self._publish_particles(stamp)
-            health = messages.health_msg(self.localizer.health)
-            if health is not None:  # NaN while the cloud is still spread (global localization)
-                self.health_pub.publish(health)
-        t_end = time.monotonic()
-        self.watchdog.scan_processed(t_end, est is not None, {
-            "wait": t_start - t_put, "deserialize": t_deser - t_start, "convert": t_conv - t_deser,
-            "update": t_update - t_conv, "publish": t_end - t_update})
+        t_s = self.localizer.scan_time(scan)
+        if not self.localizer.ready:  # no map, range table being built, or no initial pose: not usable
+            self.watchdog.scans_not_used(t_conv, 1, "while the range table was prepared" if building
+                                         else f"while waiting for {self.waiting_for()}")
+        elif math.isfinite(t_s):
+            with self._pose_out_lock:  # the scan's way so far, until its correction is published
+                self._scan_times[t_s] = (t_put, t_start, t_deser, t_conv)
+                while len(self._scan_times) > SCAN_TIMES_KEPT:
+                    del self._scan_times[next(iter(self._scan_times))]
+        self.localizer.on_scan(scan)  # not ready: it says why (throttled)
+        if math.isfinite(scan.stamp):
+            self._last_data_stamp = scan.stamp
+        self._publish_corrections()
+        self.watchdog.scan_processed(time.monotonic())
 
     def _resolve_laser_pose(self, frame_id: str, now: float) -> None:
         """The laser pose from TF when it is there; after ``tf_timeout`` the parameters (one log line
@@ -482,10 +507,11 @@ class LocalizationMixin:
                     topics.setdefault(t, []).append(name)
         except Exception:  # noqa: BLE001 - a graph query must never break diagnostics
             pass
+        self._report_worker_drops()
         loc = self.localizer
         status = self.watchdog.status(
             time.monotonic(), ready=loc.ready, waiting_for=self.waiting_for(), health=loc.health,
-            particles=loc.filter.num_particles, dropped=self.scan_worker.dropped if self.scan_worker else 0,
+            particles=loc.num_particles,
             odom_topics=[t for t in topics.get(ODOMETRY_TYPE, []) if t != ODOM_POSE_TOPIC],
             scan_topics=topics.get(SCAN_TYPE, []))
         status.values["laser pose"] = {"tf": f"TF {self.params.base_frame} -> scan frame",
@@ -494,15 +520,25 @@ class LocalizationMixin:
         status.values["recoveries"] = str(loc.recoveries)
         return status
 
+    def _report_worker_drops(self) -> None:
+        """Scans the sensor-update queue dropped since the last call, to the watchdog."""
+        worker = self.scan_worker
+        if worker is not None and worker.dropped > self._worker_dropped:
+            self.watchdog.scans_not_used(time.monotonic(), worker.dropped - self._worker_dropped,
+                                         "dropped by the full sensor-update queue")
+            self._worker_dropped = worker.dropped
+
     def publish_diagnostics(self) -> None:
         status = self.diagnostic_status()
         stamp = self.get_clock().now().nanoseconds * 1e-9
         self.diagnostics_pub.publish(messages.diagnostic_array_msg(status, stamp, f"{self.get_name()}: localization",
                                                                    self.get_name()))
         due, cleared = self.problem_log.due(status.problems, time.monotonic())
-        for problem in due:
-            log = self.get_logger().error if problem.level >= 2 else self.get_logger().warning
-            log(f"{LEVEL_NAMES[problem.level]}: {problem.message}")
+        for problem in due:  # one call site per severity: rclpy refuses a call site whose severity changes
+            if problem.level >= 2:
+                self.get_logger().error(f"{LEVEL_NAMES[problem.level]}: {problem.message}")
+            else:
+                self.get_logger().warning(f"{LEVEL_NAMES[problem.level]}: {problem.message}")
         for key in cleared:
             self.get_logger().info(f"recovered: {key} cleared")
 
@@ -521,34 +557,76 @@ class LocalizationMixin:
             self.get_logger().warning(f"could not persist the pose to {path}: {exc}", throttle_duration_sec=30.0)
 
     # ------------------------------------------------------------------ outputs
-    def _publish_pose(self, est, odom_pose, est_with_odom=None) -> None:
+    def _forward(self, t: float, last: float, stream: str) -> bool:
+        """Whether an output at time t may follow one at ``last`` on a stream: newer, or more than
+        TIME_JUMP older (the data's clock went back, e.g. a bag played again: the stream restarts)."""
+        if t > last:
+            return True
+        if t < last - TIME_JUMP:
+            self.get_logger().info(f"{stream}: the data's time went back by {last - t:.2f} s: its stamps "
+                                   "start again")
+            return True
+        return False
+
+    def _publish_odom_pose(self, est: PoseEstimate, odom_pose) -> None:
+        """The pose at an odometry message's time on /pf/pose/odom and TF (stamp est.stamp)."""
         p, stamp = self.params, self.stamps.lookup(est.stamp)
         msg = messages.odometry_msg(est.pose, est.covariance, stamp, p.map_frame, p.particle_filter_frame)
         if msg is None:
             self.get_logger().warning("non-finite estimate not published", throttle_duration_sec=5.0)
             return
-        self.pose_pub.publish(msg)
-        if _subscribed(self.pose_cov_pub):  # the same header and PoseWithCovariance, nothing converted again
-            self.pose_cov_pub.publish(PoseWithCovarianceStamped(header=msg.header, pose=msg.pose))
-        if self.tf is None:
-            return
-        if p.publish_tf == "map_to_odom":
-            if odom_pose is None:
-                return
-            pose = messages.map_to_odom((est_with_odom or est).pose, odom_pose)
-            tf = messages.transform_msg(pose, stamp, p.map_frame, p.odom_frame)
-        else:
+        tf = None
+        if self.tf is not None and not self._map_to_odom:
             tf = messages.transform_msg(est.pose, stamp, p.map_frame, p.particle_filter_frame)
-        with self._tf_lock:  # TF stamps only move forward (no TF_REPEATED_DATA), unless time jumps back
-            if tf is None or self._last_tf_stamp - TIME_JUMP < est.stamp <= self._last_tf_stamp:
+        elif self.tf is not None and odom_pose is not None:
+            tf = messages.transform_msg(messages.map_to_odom(est.pose, odom_pose), stamp, p.map_frame, p.odom_frame)
+        with self._odom_out_lock:  # stamps only move forward (no TF_REPEATED_DATA)
+            if not self._forward(est.stamp, self._last_odom_out, ODOM_POSE_TOPIC):
                 return
-            self._last_tf_stamp = est.stamp
-            self.tf.send([tf])
+            self._last_odom_out = est.stamp
+            self.pose_pub.publish(msg)
+            if tf is not None:
+                self.tf.send([tf])
+
+    def _publish_corrections(self) -> int:
+        """Each sensor-corrected estimate the localizer made since the last call, newer than the
+        last one on /pf/pose, on /pf/pose at its scan's time; then the cloud and the health.
+        Returns how many were published."""
+        corrections = self.localizer.take_corrections()
+        if not corrections:
+            return 0
+        p = self.params
+        with self._pose_out_lock:
+            published = 0
+            for est in corrections:
+                if not self._forward(est.stamp, self._last_pose_out, p.pose_topic):
+                    continue
+                t_ready = time.monotonic()
+                msg = messages.pose_with_covariance_msg(est.pose, est.covariance, self.stamps.lookup(est.stamp),
+                                                        p.map_frame)
+                if msg is None:
+                    self.get_logger().warning("non-finite estimate not published", throttle_duration_sec=5.0)
+                    continue
+                self._last_pose_out = est.stamp
+                self.pose_cov_pub.publish(msg)
+                published += 1
+                now = time.monotonic()
+                way = self._scan_times.pop(est.stamp, None)  # (put, start, deserialized, converted)
+                phases = None if way is None else {
+                    "wait": way[1] - way[0], "deserialize": way[2] - way[1], "convert": way[3] - way[2],
+                    "update": t_ready - way[3], "publish": now - t_ready}
+                self.watchdog.sensor_update(now, phases)
+            if published:
+                self._publish_particles(self._last_pose_out)
+                health = messages.health_msg(self.localizer.health)
+                if health is not None:  # NaN while the cloud is still spread (global localization)
+                    self.health_pub.publish(health)
+        return published
 
     def _publish_particles(self, stamp: float) -> None:
         if self.params.max_particles_published > 0 and _subscribed(self.particles_pub):
             self.particles_pub.publish(messages.pose_array_cdr(
-                self.localizer.filter.particles, self.stamps.lookup(stamp), self.params.map_frame,
+                self.localizer.particles(), self.stamps.lookup(stamp), self.params.map_frame,
                 self.params.max_particles_published))
 
 
@@ -593,16 +671,60 @@ def usage(prog: str = NODE_NAME) -> str:
     return USAGE.format(prog=prog, params=lines)
 
 
+def _print_help(text: str) -> None:
+    """Print the usage; a reader that stops early (``particle_filter -h | head``) is no error."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        devnull = os.open(os.devnull, os.O_WRONLY)  # Python flushes stdout again at exit: not into the pipe
+        os.dup2(devnull, sys.stdout.fileno())
+
+
+def _node_identity(ros: list[str]) -> tuple[str, str]:
+    """(namespace, node name) after the ``-r __node:=`` / ``-r __ns:=`` remappings of the ROS arguments."""
+    name, namespace = NODE_NAME, "/"
+    for i, arg in enumerate(ros[:-1]):
+        if arg in ("-r", "--remap"):
+            key, _, value = ros[i + 1].partition(":=")
+            if key in ("__node", "__name") and value:
+                name = value
+            elif key == "__ns" and value:
+                namespace = value
+    return namespace, name
+
+
+def check_params_file(path, ros: list[str]) -> str:
+    """Why a parameter file cannot configure this node ("" when it can): unreadable, or no section
+    that applies to the node (a misspelt node name would leave every parameter at its default)."""
+    import yaml
+
+    from localization.core.parameters import node_sections, section_error
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        return f"cannot read parameter file {path}: {exc}".splitlines()[0]
+    keys = list(doc) if isinstance(doc, dict) else []
+    namespace, name = _node_identity(ros)
+    return "" if node_sections(keys, name, namespace) else section_error(path, keys, name)
+
+
 def prepare_args(argv: list[str]) -> tuple[list[str] | None, int | None]:
-    """(arguments for rclpy, None) or (None, exit code) after ``--help`` or a bad ``--params-file``.
-    A ``--params-file`` given by name (``real_params``) is resolved in the package's config/."""
-    from localization.core.paths import resolve_params_path, split_ros_args
+    """(arguments for rclpy, None) or (None, exit code) after ``--help`` or a bad command line: an
+    argument outside ``--ros-args`` (exit 2, with a hint), a missing parameter file, or one without
+    a section for this node (exit 1). A ``--params-file`` given by name (``real_params`` or
+    ``real_params.yaml``) is looked up in the package's config/ when it is not a file here."""
+    from localization.core.paths import config_dir, resolve_params_path, split_ros_args
     prog = os.path.basename(argv[0]) if argv else NODE_NAME
     own, ros = split_ros_args(argv[1:])
     if any(arg in ("-h", "--help") for arg in own):
-        print(usage(prog))
+        _print_help(usage(prog))
         return None, 0
-    out = list(argv[:1]) + own
+    if own:
+        print(f"{prog}: error: unrecognized arguments: {' '.join(own)} (ROS arguments go after --ros-args, e.g. "
+              f"{prog} --ros-args --params-file real_params -p num_particles:=1000; {prog} --help lists the "
+              "parameters)", file=sys.stderr)
+        return None, 2
+    out = list(argv[:1])
     i = 0
     while i < len(ros):
         if ros[i] != "--params-file":
@@ -614,8 +736,13 @@ def prepare_args(argv: list[str]) -> tuple[list[str] | None, int | None]:
             return None, 2
         path = resolve_params_path(ros[i + 1])
         if not path.is_file():
-            print(f"{prog}: error: parameter file not found: {ros[i + 1]} (a path, or a name in "
-                  f"{path.parent})", file=sys.stderr)
+            names = ", ".join(sorted(f.stem for f in config_dir().glob("*.yaml"))) or "none"
+            print(f"{prog}: error: parameter file not found: {ros[i + 1]} (a path, or a name in {config_dir()}: "
+                  f"{names})", file=sys.stderr)
+            return None, 1
+        problem = check_params_file(path, ros)
+        if problem:
+            print(f"{prog}: error: {problem}", file=sys.stderr)
             return None, 1
         out += ["--params-file", str(path)]
         i += 2
@@ -624,7 +751,10 @@ def prepare_args(argv: list[str]) -> tuple[list[str] | None, int | None]:
 
 def spin_node(node_factory, args=None) -> int:
     """Init rclpy (with our own SIGINT/SIGTERM handling, so the context is still valid while the node
-    shuts down and logs), spin ``node_factory()``, shut down cleanly."""
+    shuts down and logs), spin ``node_factory()`` until SIGINT or SIGTERM, shut down cleanly (exit
+    code 0). The executor waits at most SPIN_WAKE_S at a time, so a signal is acted on within that
+    even when nothing else wakes it (a lifecycle node unconfigured, inactive or finalized has no
+    timer and no subscription)."""
     import signal
 
     from rclpy.signals import SignalHandlerOptions
@@ -643,12 +773,9 @@ def spin_node(node_factory, args=None) -> int:
         return 1
     executor = SingleThreadedExecutor()
     stop = threading.Event()
-    spinning = threading.Event()
 
-    def on_signal(signum, frame):  # noqa: ARG001
+    def on_signal(signum, frame):  # noqa: ARG001 - the loop below ends after the current callback
         stop.set()
-        if spinning.is_set():  # before that, the node is built completely, then not spun
-            raise KeyboardInterrupt
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     node = None
@@ -658,9 +785,8 @@ def spin_node(node_factory, args=None) -> int:
         except ParameterError:
             return 1
         executor.add_node(node)
-        spinning.set()
-        if not stop.is_set():
-            executor.spin()
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=SPIN_WAKE_S)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -27,7 +27,8 @@ _TYPE_NAMES = {bool: "a boolean (true/false)", int: "an integer", float: "a floa
 
 def declare_parameters(node: Node) -> Parameters:
     """Declare every parameter of ``localization.parameters`` (read-only, with its description)
-    and return the validated values; raises ParameterError with every problem found."""
+    and return the validated values; raises ParameterError with every problem found (a wrong type,
+    a value against its rule, an unknown name)."""
     overrides = getattr(node, "_parameter_overrides", {}) or {}
     values, problems = {}, []
     for p in PARAMETERS:
@@ -44,8 +45,9 @@ def declare_parameters(node: Node) -> Parameters:
                                 + (f" ({p.rule})" if p.rule else ""))
     unknown = sorted(n for n in overrides if n not in BY_NAME and n != "use_sim_time"
                      and not n.startswith("qos_overrides."))
-    if unknown:
-        node.get_logger().warning(f"unknown parameters ignored: {', '.join(unknown)}")
+    if unknown:  # a typo would otherwise leave the intended parameter at its default
+        problems.append(f"unknown parameter{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+                        f"(particle_filter --help lists them)")
     try:
         params = Parameters(values)
     except ParameterError as exc:

@@ -3,13 +3,17 @@
 Usage::
 
     localization-play BAG [--rate R] [--topics T [T ...]] [--start-delay S] [--loop] [--clock]
-    localization-play [BAG] --map NAME_OR_YAML [--initial-pose X,Y,YAW]
+    localization-play [BAG] --map NAME_OR_YAML [--initial-pose X,Y,YAW] [--wait-ready S]
 
 ``--map`` publishes a map (a name of the package's maps/, e.g. ``basement_fixed``, or a
 map_server YAML) on ``/map`` latched (reliable, transient local, as nav2's map_server), before the
 bag; without a bag the map stays available until Ctrl-C. ``--initial-pose X,Y,YAW`` publishes one
 ``geometry_msgs/PoseWithCovarianceStamped`` on ``/initialpose`` (map frame, std 0.3 m / 0.1 rad)
-once a subscriber is there, before the bag. No ``ros2`` CLI needed.
+once a subscriber is there, before the bag. With a bag and ``--initial-pose`` the bag waits (at
+most ``--wait-ready`` seconds, default 60) until the localizer is ready to use it: a particle
+cloud on ``/pf/particles`` or a ``/diagnostics`` status whose ``state`` is ``localizing`` (a node
+started cold builds its range table first; scans played meanwhile could not be used). No
+``ros2`` CLI needed.
 
 ``BAG`` is a ROS 1 ``.bag``, a rosbag2 directory, or a ``.db3`` / ``.mcap`` file (read with
 ``localization.bag_io``; no ``ros2 bag`` needed). Every topic (or only those given with
@@ -71,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds to wait for discovery before the first message (default 1.0)")
     p.add_argument("--end-delay", type=non_negative_float, default=0.5, metavar="S",
                    help="seconds to stay alive after the last message (default 0.5)")
+    p.add_argument("--wait-ready", type=non_negative_float, default=60.0, metavar="S",
+                   help="with a bag and --initial-pose: wait up to S seconds for the localizer to be ready "
+                        "(/pf/particles, or /diagnostics state 'localizing') before the bag (default 60; 0: no wait)")
     p.add_argument("--loop", action="store_true", help="replay the bag until interrupted")
     p.add_argument("--clock", action="store_true", help="also publish /clock with the bag time")
     return p
@@ -189,7 +196,11 @@ def _play(bag, infos, classes, args, ros_args) -> int:
             except ImportError as exc:
                 _warn(f"no /clock: {exc}")
 
+        ready = _Readiness(node, context) if bag is not None and args.initial_pose is not None \
+            and args.wait_ready > 0 else None
         _publish_map_and_pose(node, args, stop)
+        if ready is not None:
+            _wait_ready(ready, args.wait_ready, stop)
         if bag is None:
             if args.map is not None:
                 print(f"{PROG}: publishing {args.map} on /map (latched) until Ctrl-C", flush=True)
@@ -255,6 +266,47 @@ def _play(bag, infos, classes, args, ros_args) -> int:
         print(f"{PROG}: published {sum(counts.values())} messages ({', '.join(parts)}) from {bag.path.name} "
               f"in {elapsed:.2f} s at rate {args.rate:g}{interrupted}{note}", flush=True)
     return 0
+
+
+class _Readiness:
+    """Subscriptions that tell when a localizer is ready: a particle cloud, or 'localizing' on /diagnostics."""
+
+    def __init__(self, node, context):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseArray
+        from rclpy.executors import SingleThreadedExecutor
+        self.event = threading.Event()
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(node)
+        self.subs = [node.create_subscription(PoseArray, "/pf/particles", lambda _: self.event.set(), 5, raw=True),
+                     node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)]
+        self.node = node
+
+    def _on_diagnostics(self, msg) -> None:
+        if any(kv.key == "state" and kv.value == "localizing" for st in msg.status for kv in st.values):
+            self.event.set()
+
+    def close(self) -> None:
+        for sub in self.subs:
+            self.node.destroy_subscription(sub)
+        self.executor.remove_node(self.node)
+        self.executor.shutdown(timeout_sec=1.0)
+
+
+def _wait_ready(ready: _Readiness, timeout: float, stop) -> None:
+    """Spin until the localizer is ready (or ``timeout`` s, or Ctrl-C); one line saying which."""
+    t0 = time.monotonic()
+    print(f"{PROG}: waiting up to {timeout:g} s for the localizer to be ready (/pf/particles or /diagnostics "
+          "'localizing'; --wait-ready 0: no wait)", flush=True)
+    try:
+        while not ready.event.is_set() and not stop.is_set() and time.monotonic() - t0 < timeout:
+            ready.executor.spin_once(timeout_sec=0.1)
+    finally:
+        ready.close()
+    if ready.event.is_set():
+        print(f"{PROG}: the localizer is ready after {time.monotonic() - t0:.1f} s: playing the bag", flush=True)
+    elif not stop.is_set():
+        _warn(f"the localizer was not ready after {timeout:g} s: playing the bag anyway")
 
 
 def _publish_map_and_pose(node, args, stop) -> None:
