@@ -52,7 +52,7 @@ from localization.core.scan_step import ScanStep
 from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
-from localization.core.timeline import OdometryLimits, OdometryTimeline, PoseEstimate
+from localization.core.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
 
 __all__ = ["Localizer", "PoseEstimate", "build_filter"]
 
@@ -102,7 +102,8 @@ class Localizer:
         self._recovery = RecoveryPolicy(p)
         self.map: OccupancyMap | None = None
         self.map_pending = False  # a map's sensor-model preparation is under way elsewhere
-        self._corrections: list[PoseEstimate] = []
+        self._corrections = Outbox()  # sensor-corrected estimates not yet taken (its own lock)
+        self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
         self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
         self.recoveries = 0
@@ -121,30 +122,20 @@ class Localizer:
             return np.array(self._pf.particles, dtype=float)
 
     def estimate_at(self, t: float | None = None) -> PoseEstimate | None:
-        """The latest corrected estimate carried through the odometry to time t (scan clock; None: to
-        the newest odometry's time, what the node publishes), backwards too."""
+        """The latest corrected estimate carried to time t (scan clock; None: the newest odometry's)."""
         with self._lock:
             t = self._timeline.latest if t is None else t
             return self._timeline.anchor if t is None else self._timeline.pose_at(t)
 
     estimate = property(estimate_at)
 
-    scan_time = staticmethod(scan_time)  # a scan's time on the scan clock (core.scan)
+    def scan_time(self, scan: ScanData) -> float:  # on the scan clock, under the scan_stamp convention
+        return scan_time(scan, self.params.scan_stamp, self.params.scan_stamp_offset)
 
-    def take_corrections(self) -> list[PoseEstimate]:
-        """Sensor-corrected estimates since the last call, oldest first, each at its scan's time."""
-        with self._lock:
-            out, self._corrections = self._corrections, []
-        return out
+    def begin_map_preparation(self, pending: bool = True) -> None:  # False: preparing it failed
+        self.map_pending = pending  # a map is being prepared elsewhere: inputs wait for it
 
-    def begin_map_preparation(self) -> None:  # a map is being prepared elsewhere: inputs wait for it
-        self.map_pending = True
-
-    def cancel_map_preparation(self) -> None:  # preparing it failed: inputs no longer wait
-        self.map_pending = False
-
-    def map_preparation(self, occupancy_map: OccupancyMap):
-        """Whether preparing this map is slow (and a note for the log): the sensor model's answer."""
+    def map_preparation(self, occupancy_map: OccupancyMap):  # slow? and a note for the log
         return self._pf.sensor_model.preparation(occupancy_map)
 
     def prepare_ray_caster(self, occupancy_map: OccupancyMap):
@@ -218,14 +209,15 @@ class Localizer:
         t = t if t is not None and math.isfinite(t) else 0.0
         self._timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))
 
-    def on_odometry(self, twist: TwistData) -> PoseEstimate | None:
-        """Add an odometry message; returns the latest corrected estimate carried to its time t'_k."""
+    def on_odometry(self, twist: TwistData, run_scans: bool = True) -> PoseEstimate | None:
+        """Add odometry; the corrected estimate carried to its time t'_k (``run_scans`` False: the scans
+        it releases wait for ``run_waiting``, on a sensor-update thread)."""
         self._inbox.append(twist)
         if not self._lock.acquire(blocking=False):  # a sensor update runs: carry the last pose by this twist
             self._carried = self._timeline.limits.carry(self._carried, twist)
             return self._carried
         try:
-            accepted = self._drain_locked()
+            accepted = self._drain_locked(run_scans)
             if not self.ready:
                 self.warn("odom-not-ready", waiting(self, "odometry kept; no pose yet"), logging.INFO)
             self._carried = self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
@@ -233,7 +225,12 @@ class Localizer:
         finally:
             self._lock.release()
 
-    def _drain_locked(self) -> bool:
+    def run_waiting(self) -> None:
+        """Use the scans the odometry received so far has released (the sensor-update thread's call)."""
+        with self._lock:
+            self._drain_locked()
+
+    def _drain_locked(self, run_scans: bool = True) -> bool:
         """Odometry from the inbox into the timeline, then every scan it covers; the last one accepted?"""
         accepted = False
         while self._inbox:
@@ -244,6 +241,9 @@ class Localizer:
             elif verdict.restart is not None and self._step.t_filter is not None:  # a new history: the
                 self._step.restart(verdict.restart)  # filter's times move to its start
         self._timeline.rebase_anchor()  # keep the history short
+        self._timeline.trim(self._step.t_filter)
+        if not run_scans:
+            return accepted
         for item in self._queue.release(None if self._timeline.empty else self._timeline.latest):
             if item.late:
                 self.warn("scan-late", item.warning(self.params.scan_max_wait))
@@ -260,14 +260,14 @@ class Localizer:
             if not self.ready:
                 return self.warn("scan-not-ready", waiting(self, "scan ignored"), logging.INFO)
             latest = self._timeline.latest
-            t_s = scan_time(scan) if self.params.align_odometry or latest is None else latest
+            t_s = self.scan_time(scan) if self.params.align_odometry or latest is None else latest
             if latest is not None and t_s < latest - self.params.odom_max_gap:
                 return self.warn("scan-stale", f"scan stamped {latest - t_s:.2f} s before the latest odometry "
                                  "ignored (a clock jump or a stale message)")
-            before = len(self._corrections)
+            self._newest = None
             self._queue.push(t_s, scan)
             self._drain_locked()
-            return self._corrections[-1] if len(self._corrections) > before else None
+            return self._newest
 
     def flush(self) -> None:
         """Use every waiting scan now, the last twist extrapolated (the end of a recording)."""
@@ -286,4 +286,4 @@ class Localizer:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
             corrected = PoseEstimate(stamp=t_s, pose=est.pose, covariance=est.covariance)
             self._timeline.set_anchor(corrected)
-            self._corrections.append(corrected)
+            self._newest = self._corrections.put(corrected)

@@ -24,6 +24,7 @@ lost; one bad stamp between good ones is skipped). Not thread safe: the localize
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -166,7 +167,8 @@ class OdometryTimeline:
         """An anchor older than half ``max_gap`` moves to the newest odometry (the same pose, carried):
         the history it needs stays short however long no scan corrects it."""
         a, latest = self.anchor, self.latest
-        if a is not None and latest is not None and a.stamp < latest - 0.5 * self.limits.max_gap:
+        if a is not None and latest is not None and not latest - 0.5 * self.limits.max_gap <= a.stamp <= (
+                latest + self.limits.max_gap):  # old, or on another clock (a pose stamped by the wall clock)
             self.set_anchor(self.pose_at(latest))
 
     def pose_at(self, t: float) -> PoseEstimate | None:
@@ -182,6 +184,25 @@ class OdometryTimeline:
     def trim(self, keep_from: float | None = None) -> None:
         """Forget odometry no longer needed (older than the anchor and ``keep_from``, minus a gap)."""
         keep = [t for t in (keep_from, None if self.anchor is None else self.anchor.stamp, self.latest)
-                if t is not None and math.isfinite(t)]
+                if t is not None and math.isfinite(t) and self.usable(t) == t]  # times on this history's clock
         if keep:
             self._buffer.trim(min(keep) - self.limits.max_gap)
+
+
+class Outbox:
+    """Sensor-corrected estimates waiting to be taken (published), oldest first; its own lock, so the
+    node takes them without waiting for a running sensor update."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._items: list[PoseEstimate] = []
+
+    def put(self, estimate: PoseEstimate) -> PoseEstimate:
+        with self._lock:
+            self._items.append(estimate)
+        return estimate
+
+    def take(self) -> list[PoseEstimate]:
+        with self._lock:
+            out, self._items = self._items, []
+        return out

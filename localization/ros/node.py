@@ -89,7 +89,6 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 TIME_JUMP = 1.0  # seconds: data stamps this far back (a bag replayed again) restart the TF stamps
 TABLE_KINDS = ("lookup_table", "lookup_table_exact")  # ray casters whose map set-up builds a range table
 # seconds per (free cell x heading) ray of a range-table build, per core (the estimate in the log line)
-TABLE_SECONDS_PER_RAY = 2.5e-7
 GIL_SWITCH_INTERVAL_S = 0.0005  # see spin_node
 SPIN_WAKE_S = 0.2  # s: the executor's longest wait, so SIGINT/SIGTERM are acted on within it
 SCAN_TIMES_KEPT = 64  # scans whose way through the node is remembered until their correction (latency)
@@ -302,19 +301,8 @@ class LocalizationMixin:
             self._install_map((occupancy_map, self._map_generation, msg.header.frame_id), time.monotonic())
 
     def _log_table_start(self, occupancy_map: OccupancyMap) -> None:
-        from localization.core.paths import cache_dir
-        from localization.core.raycast.table_cache import cache_file_name
-        bins = self.params.scan_theta_discretization
-        max_range = (self.params.table_width - 1) * occupancy_map.resolution  # the beam model's z_max, in metres
-        cached = (cache_dir() / cache_file_name(occupancy_map, max_range, bins)).is_file()
-        free = int(np.count_nonzero(occupancy_map.free))
-        size = f"map {occupancy_map.width}x{occupancy_map.height} cells ({free} free) x {bins} headings"
-        if cached:
-            self.get_logger().info(f"range table: loading it from the cache for the {size}")
-        else:
-            expected = free * bins * TABLE_SECONDS_PER_RAY / max(1, min(2, os.cpu_count() or 1))
-            self.get_logger().info(f"range table: building it for the {size}, expected ~{expected:.0f} s "
-                                   "(cached for the next start); odometry is kept meanwhile, scans cannot be used")
+        note = self.localizer.map_preparation(occupancy_map).note
+        self.get_logger().info(f"{note}; odometry is kept meanwhile, scans cannot be used")
 
     def _install_map(self, item, t_put: float) -> None:
         occupancy_map, generation, frame_id = item
@@ -322,7 +310,7 @@ class LocalizationMixin:
         try:
             caster = self.localizer.prepare_ray_caster(occupancy_map)
         except Exception as exc:  # noqa: BLE001 - a map that cannot be prepared is reported, never fatal
-            self.localizer.cancel_map_preparation()
+            self.localizer.begin_map_preparation(False)
             self.get_logger().error(f"map on {self.params.map_topic} rejected: preparing its ray caster failed: "
                                     f"{exc!r}")
             self.watchdog.map_failed(time.monotonic(), repr(exc))
@@ -336,7 +324,7 @@ class LocalizationMixin:
         try:
             self.localizer.set_map(occupancy_map, caster)
         except MapError as exc:
-            self.localizer.cancel_map_preparation()
+            self.localizer.begin_map_preparation(False)
             self.get_logger().error(f"map on {self.params.map_topic} rejected: {exc}")
             self.watchdog.map_failed(time.monotonic(), str(exc))
             self.counts["map"] += 1
@@ -410,14 +398,15 @@ class LocalizationMixin:
             self.watchdog.odom_waiting_for_table += 1
         t_odom = self.stamps.remember(msg.header.stamp) + self.params.odom_time_offset  # scan clock
         odom_pose = pose_from_msg(msg.pose.pose) if self._map_to_odom else None
-        est = self.localizer.on_odometry(twist_from_odometry(msg))
+        # with the sensor-update thread, scans this odometry releases run there (at its next scan), not here
+        est = self.localizer.on_odometry(twist_from_odometry(msg), run_scans=self.scan_worker is None)
         if math.isfinite(t_odom):
             self._last_data_stamp = t_odom
             self._last_odom = (t_odom, odom_pose)
         if est is not None:  # None before a map and an initial pose (the Localizer logs that, throttled)
             self._publish_odom_pose(est, odom_pose)
         if self.scan_worker is None:  # with the sensor-update thread, that thread publishes the corrections
-            self._publish_corrections()  # (take_corrections waits for a sensor update that runs)
+            self._publish_corrections()
 
     def on_scan(self, msg) -> None:
         """Subscription callback: the scan (serialized bytes, or a message) through the sensor update
