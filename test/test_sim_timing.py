@@ -1,4 +1,4 @@
-"""Simulator timing effects (issue 10): odometry latency, scale and bias, lidar sweep timing, range
+"""Simulator timing effects: odometry latency, scale and bias, lidar sweep timing, range
 scale, laser mounting offset, driving at 7 m/s."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Time-correct localization (issue 10): the odometry history on the scan's clock, estimates at
+"""Time-correct localization: the odometry history on the scan's clock, estimates at
 the scan's own time, thread safety, and scan deskew (kernel, accuracy, effect on a fast drive)."""
 from __future__ import annotations
 

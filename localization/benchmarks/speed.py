@@ -56,7 +56,7 @@ from localization.core.scan import ScanData  # noqa: E402
 WORKLOADS = [(200, 100), (2000, 60), (4000, 60), (10000, 60), (10000, 100)]
 QUICK_WORKLOADS = [(200, 100), (2000, 60)]
 TARGETS_MS = {(4000, 60): 6.0, (10000, 60): 15.0, (10000, 100): 25.0}  # full sensor update, median
-PROTOTYPE_MS = {(4000, 60): 6.1, (10000, 60): 15.5, (10000, 100): 23.6}  # numpy lookup prototype (issue)
+PROTOTYPE_MS = {(4000, 60): 6.1, (10000, 60): 15.5, (10000, 100): 23.6}  # the first numpy lookup prototype
 MOTION_TARGET_MS = 1.0
 FULL_SCAN_BEAMS = 1081  # Hokuyo UST-10LX: 270° in 0.25° steps
 SCAN_HALF_ANGLE = 2.356194490192345
