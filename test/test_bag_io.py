@@ -21,7 +21,7 @@ from localization.bags import (
     stamp_to_ns,
     topics,
 )
-from localization.core.geometry import yaw_of
+from localization.core.geometry import compose, yaw_of
 
 T0 = 1_700_000_000_000_000_000  # bag start, ns
 N_SCANS = 8
@@ -273,3 +273,100 @@ def test_real_ros1_raw_cdr_deserializes_with_rclpy(bag3):
     msg = serialization.deserialize_message(scan.raw_cdr, sensor_msgs.LaserScan)
     np.testing.assert_array_equal(np.asarray(msg.ranges, dtype=np.float32), scan.msg.ranges)
     assert msg.header.stamp.sec == scan.msg.header.stamp.sec
+
+
+# ------------------------------------------------------------------ TF: odometry and the laser mount
+
+
+def _tf_odometry_bag(path: Path, laser_quaternion, twists, dt: float = 0.1) -> np.ndarray:
+    """A bag with odometry only as /tf odom -> base_footprint -> base_link (the footprint edge
+    static) driven by ``twists`` held dt each, and /tf_static base_link -> laser rotated by
+    ``laser_quaternion``; returns the stamps (s) and the poses of base_link written."""
+    from localization.core.geometry import integrate_twist
+    poses = [np.zeros(3)]
+    for v in twists:
+        poses.append(compose(poses[-1], integrate_twist(*v, dt)))
+    with BagWriter(path) as w:
+        ts = w.typestore
+        w.add_topic("/tf_static", "tf2_msgs/msg/TFMessage")
+        w.add_topic("/tf", "tf2_msgs/msg/TFMessage")
+        w.add_topic("/scan", "sensor_msgs/msg/LaserScan")
+        w.write("/tf_static", T0, make_tf_message(ts, [
+            make_transform_stamped(ts, T0, "base_link", "laser", x=0.14, y=0.02, z=0.3, quaternion=laser_quaternion),
+            make_transform_stamped(ts, T0, "base_footprint", "base_link", z=0.05)]))
+        for k, p in enumerate(poses):
+            t = T0 + int(k * dt * 1e9)
+            w.write("/tf", t + 3_000_000, make_tf_message(ts, [make_transform_stamped(ts, t, "/odom", "/base_footprint",
+                                                                                      x=p[0], y=p[1], yaw=p[2])]))
+        w.write("/scan", T0 + 1_000_000, make_laser_scan(ts, T0, "laser", np.ones(10), angle_min=-1.0, angle_max=1.0,
+                                                         angle_increment=2.0 / 9, range_min=0.1, range_max=5.0))
+    return np.asarray(poses)
+
+
+def test_odometry_from_tf_inverts_the_integration_exactly(tmp_path):
+    """No Odometry topic: bags.tf differentiates odom -> base_link (through a static footprint edge,
+    ROS 1 style leading slashes) into twists at the TF rate; integrating them gives the poses back."""
+    from localization.eval.datasets import bag_odometry
+    from localization.eval.reference import dead_reckon
+    rng = np.random.default_rng(2)
+    twists = np.column_stack([rng.uniform(0.0, 0.6, 40), np.zeros(40), rng.uniform(-1.5, 1.5, 40)])
+    twists[5] = (0.0, 0.0, 0.0)  # standing
+    twists[9] = (0.0, 0.0, 1.2)  # a turn on the spot
+    path = tmp_path / "tf_odom"
+    poses = _tf_odometry_bag(path, (0.0, 0.0, 0.0, 1.0), twists)
+    odo = bag_odometry(path, "/odom")
+    assert odo.source == "/tf odom -> base_link" and len(odo.messages) == len(poses)
+    t, tw = odo.arrays()
+    np.testing.assert_allclose(t - t[0], np.arange(len(poses)) * 0.1, atol=3e-7)  # float s at 1.7e9 s: 2.4e-7
+    np.testing.assert_allclose(tw[1:], twists, atol=1e-5)  # the stamps' rounding, relative to dt = 0.1 s
+    np.testing.assert_allclose(dead_reckon(t, tw, t), poses, atol=1e-9)  # integrated over the same stamps: exact
+    assert np.all(odo.record_ns - np.round(t * 1e9).astype(np.int64) == 3_000_000)  # each from its TF message
+
+
+@pytest.mark.parametrize("quaternion, yaw, upright", [
+    ((0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)), np.pi / 2, True),  # turned 90 deg left
+    ((1.0, 0.0, 0.0, 0.0), 0.0, False),  # upside down (roll pi): x still forward, the scan mirrored
+    ((0.0, np.sin(0.05), 0.0, np.cos(0.05)), 0.0, True),  # pitched down 0.1 rad
+])
+def test_laser_mount_from_tf_static(tmp_path, quaternion, yaw, upright):
+    from localization.bags import laser_mount_from_bag
+    from localization.eval.datasets import bag_laser_mount
+    path = tmp_path / "mount"
+    _tf_odometry_bag(path, quaternion, np.zeros((3, 3)))
+    mount = laser_mount_from_bag(path, "/scan")
+    assert mount is not None and mount.upright == upright and mount.frames == ("base_link", "laser")
+    np.testing.assert_allclose(mount.pose, (0.14, 0.02, yaw), atol=1e-9)
+    lines = []
+    assert bag_laser_mount(path, "/scan", (0.275, 0.0, 0.0), log=lines.append) == pytest.approx((0.14, 0.02, yaw))
+    assert "from the bag's TF" in lines[0] and (upright or "upside down" in lines[-1])
+    # without the transform: the fallback, said in one line
+    assert laser_mount_from_bag(path, "/scan", base_frame="chassis") is None
+    lines = []
+    assert bag_laser_mount(path, "/scan", (0.275, 0.0, 0.0), base_frame="chassis", log=lines.append) == (0.275, 0, 0)
+    assert len(lines) == 1 and "laser_offset_" in lines[0]
+
+
+def test_bag_without_odometry_is_one_clear_error(tmp_path):
+    from localization.eval.datasets import bag_odometry
+    path = tmp_path / "no_odom"
+    with BagWriter(path) as w:
+        ts = w.typestore
+        w.write("/scan", T0, make_laser_scan(ts, T0, "laser", np.ones(10), angle_min=-1.0, angle_max=1.0,
+                                             angle_increment=2.0 / 9, range_min=0.1, range_max=5.0))
+    with pytest.raises(BagError, match="no odometry in bag .*no nav_msgs/msg/Odometry on /odom and no TF chain"):
+        bag_odometry(path, "/odom")
+
+
+def test_real_pioneer_bag_odometry_only_in_tf():
+    """lgfloor2 (2011): no Odometry topic; its /tf (ROS 1 tf/tfMessage, '/odom' -> '/base_link') gives
+    the twist stream at 10 Hz, and /tf carries the laser 0.135 m ahead of base_link."""
+    from localization.bags import laser_mount_from_bag
+    from localization.eval.datasets import bag_odometry, real_bag_path
+    path = real_bag_path("lgfloor2")
+    odo = bag_odometry(path, "/odom")
+    t, tw = odo.arrays()
+    assert odo.source == "/tf odom -> base_link" and len(t) > 1500
+    assert np.all(np.diff(t) > 0) and np.median(np.diff(t)) == pytest.approx(0.1, abs=0.005)
+    assert np.percentile(np.abs(tw[:, 0]), 99) < 0.7 and np.abs(tw[:, 1]).max() < 0.05  # a differential base
+    mount = laser_mount_from_bag(path, "/base_scan")
+    assert mount.pose == pytest.approx((0.135, 0.0, 0.0), abs=1e-6) and mount.upright

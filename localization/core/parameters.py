@@ -206,7 +206,7 @@ PARAMETERS = [
           "plus an exact finish per beam: slower, as accurate as exact), distance_transform or exact",
           _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
           "lookup_table, lookup_table_exact, distance_transform or exact"),
-    # --- node interface (issue 11): nav2-style options, watchdogs and diagnostics, pose persistence
+    # --- node interface: nav2-style options, watchdogs and diagnostics, pose persistence
     Param("pose_topic", "/pf/pose", "geometry_msgs/PoseWithCovarianceStamped output of the estimate (as nav2_amcl's "
           "/amcl_pose), beside /pf/pose/odom", _topic, "a topic name"),
     Param("set_initial_pose", False, "start from initial_pose.x/.y/.yaw (as nav2_amcl) instead of waiting for "
@@ -298,11 +298,11 @@ PARAMETERS = [
     Param("kld_bin_xy", 0.5, "adaptive_particles: histogram bin size (m) in x and y", _positive, "> 0"),
     Param("kld_bin_theta", 0.17453292519943295, "adaptive_particles: histogram bin size (rad) in heading (10 deg)",
           _positive, "> 0"),
-    # --- time-correct localization (issue 10, items 2-3): odometry on the scan's clock and scan deskew
+    # --- time-correct localization: odometry on the scan's clock, the scan stamp convention and scan deskew
     # (core/odometry.py OdometryBuffer, core/localizer.py, core/sensors/beam.py); values from localization-calibrate
     Param("align_odometry", True, "propagate the particles through the odometry history to each scan's own time "
           "(interpolating between messages, extrapolating the last twist; a swept scan: the middle of its sweep) and "
-          "stamp the estimate with that time; false: each scan is used at the latest odometry (as before issue 10)",
+          "stamp the estimate with that time; false: each scan is used at the latest odometry",
           lambda v: isinstance(v, bool), "true or false"),
     Param("odom_time_offset", 0.0, "odometry clock vs scan clock (s): an odometry message stamped t describes the "
           "motion up to t + odom_time_offset (odometry reporting 40 ms late: -0.04)",

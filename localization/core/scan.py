@@ -1,10 +1,17 @@
 """Laser scans in the core: the full scan as received (``ScanData``, the fields of a
 sensor_msgs/LaserScan) and the downsampled beams the sensor model uses (``Scan``).
 
-    beam i:  angle_i = angle_min + i · angle_increment,   time_i = stamp + i · time_increment
+    beam i:  angle_i = angle_min + i · angle_increment,   time_i = t_0 + i · time_increment
 
-(the header stamp is the first beam's time; ``scan_time`` the sweep period). Invalid ranges (NaN,
-±inf, outside [range_min, range_max]) become ``inf``: a max-range reading.
+(``scan_time`` the sweep period). Which beam the header stamp s describes is a property of the driver
+(``scan_stamp``, docs/timing.md), and ``scan_stamp_offset`` o (s) is how much later than that beam the
+stamp was taken (a latency the driver did not subtract), so with n beams and Δ = time_increment::
+
+    first_beam (REP / LaserScan spec, default):  t_0 = s − o
+    last_beam  (urg_node with calibrate_time false, rplidar_ros):  t_0 = s − o − (n − 1) Δ
+    mid-sweep time (the scan's time, ``scan_time``):  t_0 + ½ (n − 1) Δ
+
+Invalid ranges (NaN, ±inf, outside [range_min, range_max]) become ``inf``: a max-range reading.
 """
 from __future__ import annotations
 
@@ -89,8 +96,22 @@ def sweep_increment(scan: ScanData) -> float:
     return float(ti) if ok else 0.0
 
 
-def scan_time(scan: ScanData) -> float:
-    """The time a scan describes: its stamp (the first beam), or the middle of its sweep when it
-    carries per-beam timing (stamp + ½ (n − 1) time_increment): also the pose a rigid match of a
-    skewed scan recovers."""
-    return scan.stamp + 0.5 * sweep_increment(scan) * (np.size(scan.ranges) - 1)
+SCAN_STAMPS = ("first_beam", "last_beam")  # which beam a scan's header stamp describes (module doc)
+
+
+def first_beam_time(scan: ScanData, stamp: str = "first_beam", offset: float = 0.0) -> float:
+    """Time t_0 (s, scan clock) of the scan's first beam under the stamp convention (module doc);
+    without usable sweep timing both conventions give s − o."""
+    if stamp not in SCAN_STAMPS:
+        raise ValueError(f"scan stamp convention {stamp!r}: expected one of {', '.join(SCAN_STAMPS)}")
+    t0 = scan.stamp - offset
+    if stamp == "last_beam":
+        t0 -= sweep_increment(scan) * (np.size(scan.ranges) - 1)
+    return t0
+
+
+def scan_time(scan: ScanData, stamp: str = "first_beam", offset: float = 0.0) -> float:
+    """The time a scan describes (s, scan clock): the middle of its sweep, t_0 + ½ (n − 1) Δ (module
+    doc), i.e. the stamp itself for a scan without per-beam timing; also the pose a rigid match of a
+    skewed scan recovers. ``stamp``/``offset``: the parameters scan_stamp / scan_stamp_offset."""
+    return first_beam_time(scan, stamp, offset) + 0.5 * sweep_increment(scan) * (np.size(scan.ranges) - 1)

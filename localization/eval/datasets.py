@@ -1,5 +1,7 @@
-"""The evaluation data sets: simulated Stata basement trials (generated on demand, cached) and
-the real RSS 2022 bags (read from the shared data directory).
+"""The evaluation data sets: simulated Stata basement trials (generated on demand, cached), the
+real RSS 2022 RACECAR bags and the real Pioneer 3-DX bags (read from the shared data directory),
+and what a bag says about its robot: its odometry (an Odometry topic, else TF odom → base_link)
+and its laser mount (TF base_link → the scan's frame).
 
 Simulated trials follow the reference lab report's Table 1: three drives starting in the
 diagonal corridor in front of room 32-044 at odometry noise 0, 0.3 and 0.6, plus a longer loop
@@ -19,6 +21,8 @@ import shutil
 import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+
+import numpy as np
 
 from localization.core.occupancy_map import load_map
 from localization.core.paths import cache_dir, shared_dir
@@ -63,7 +67,7 @@ SIM_TRIALS = {t.name: t for t in (
              "odometry noise 0.3, speed 5 % short, yaw-rate bias 0.05 rad/s", 0.3,
              SimConfig(start=(-6.6, 20.5, -2.24), waypoints=_LOOP, closed=True, duration=75.0, speed=2.5, seed=4,
                        odom_noise=0.3, speed_scale=0.95, yaw_rate_bias=0.05)),
-    # time-correct localization (issue 10): fast driving, odometry latency, sweep timing, calibration
+    # time-correct localization: fast driving, odometry latency, sweep timing, calibration
     SimTrial("fast", "Fast: the basement loop (diagonal, bottom, west, top corridors) at up to 7 m/s on the "
              "straights; odometry 40 ms late, noise 0.3; lidar sweep timing", 0.3,
              SimConfig(start=(-6.6, 20.5, -2.24), waypoints=_LOOP[:-3], speed=7.0, seed=5, odom_noise=0.3,
@@ -86,16 +90,33 @@ class RealBag:
     name: str
     filename: str
     map: str
-    start: tuple  # approximate start pose of base_link (x, y, yaw), good to a few decimetres
+    start: tuple | None  # approximate start pose of base_link (x, y, yaw), good to a few decimetres; None: global
     duration: float  # seconds
     scan_topic: str = "/scan"
-    odom_topic: str = "/vesc/odom"
+    odom_topic: str = "/vesc/odom"  # absent from the bag: odometry from TF odom_frame -> base_frame
+    folder: str = "rss2022"  # under <shared>/bags
+    params: str = "real_params.yaml"  # the robot's parameter file in config/
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    scan_stamp: str = "last_beam"  # which beam the scan stamps describe (calibration.check_scan_stamps on the bag)
 
 
+#: The MIT RACECAR, Stata basement (Hokuyo UST-10LX-class: 1081 beams, 30 m, 40 Hz; VESC odometry 50 Hz).
 REAL_BAGS = {b.name: b for b in (
     RealBag("bag1", "localization_bag1_2022-03-29-19-23-29.bag", "basement_fixed", (0.8, -0.3, 1.26), 7.0),
     RealBag("bag2", "localization_bag2_2022-03-29-19-24-34.bag", "basement_fixed", (1.2, -1.2, 1.79), 8.7),
     RealBag("bag3", "localization_bag3.bag", "basement_fixed", (1.3, 0.2, 1.59), 5.4),
+)}
+
+#: A Pioneer 3-DX, University of Birmingham (URG-04LX: 512-726 beams, 5.6 m, 10 Hz; odometry 10 Hz;
+#: lgfloor2 has odometry only as TF). trace0's start pose was fitted on its first 30 s.
+PIONEER_BAGS = {b.name: b for b in (
+    RealBag("trace0", "trace0.bag", "lgfloor", (30.47, 17.14, 2.217), 96.0, "/base_scan", "/odom", "uob_pioneer",
+            "pioneer_params.yaml"),
+    RealBag("trace1", "trace1.bag", "lgfloor", None, 91.0, "/base_scan", "/odom", "uob_pioneer",
+            "pioneer_params.yaml"),
+    RealBag("lgfloor2", "lgfloor2.bag", "lgfloor", None, 163.0, "/base_scan", "/odom", "uob_pioneer",
+            "pioneer_params.yaml", scan_stamp="first_beam"),
 )}
 
 
@@ -104,9 +125,112 @@ REAL_BAGS = {b.name: b for b in (
 # --------------------------------------------------------------------------------------------
 
 
+def real_bag(name: str) -> RealBag:
+    """A real bag by name (``REAL_BAGS`` or ``PIONEER_BAGS``)."""
+    try:
+        return REAL_BAGS[name] if name in REAL_BAGS else PIONEER_BAGS[name]
+    except KeyError:
+        raise KeyError(f"unknown real bag {name!r}; known: {', '.join([*REAL_BAGS, *PIONEER_BAGS])}") from None
+
+
 def real_bag_path(name: str) -> Path:
-    bag = REAL_BAGS[name]
-    return shared_dir() / "bags" / "rss2022" / bag.filename
+    bag = real_bag(name)
+    return shared_dir() / "bags" / bag.folder / bag.filename
+
+
+# --------------------------------------------------------------------------------------------
+# What a bag says about its robot: scans, odometry, laser mount
+# --------------------------------------------------------------------------------------------
+
+
+ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+
+
+@dataclass
+class BagOdometry:
+    """A bag's odometry as the twist stream the core takes (stamps on the bag's clock).
+
+    ``source``: ``"<topic>"`` or ``"/tf <odom> -> <base>"``; ``record_ns`` (M,): the bag's record
+    time of each entry (to feed it in bag order with the scans); ``messages``: ``TwistData``."""
+
+    source: str
+    messages: list
+    record_ns: np.ndarray
+
+    @property
+    def stamps(self) -> np.ndarray:
+        return np.array([m.stamp for m in self.messages], dtype=float)
+
+    @property
+    def twists(self) -> np.ndarray:
+        """(M, 3): v_x, v_y, ω_z."""
+        return np.array([[m.vx, m.vy, m.wz] for m in self.messages], dtype=float).reshape(-1, 3)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps (M,) and twists (M, 3), in stamp order."""
+        t, tw = self.stamps, self.twists
+        order = np.argsort(t, kind="stable")
+        return t[order], tw[order]
+
+
+def bag_odometry(bag_path, odom_topic: str = "/odom", odom_frame: str = "odom",
+                 base_frame: str = "base_link") -> BagOdometry:
+    """The bag's odometry: nav_msgs/Odometry on ``odom_topic`` when the bag has it, else TF
+    ``odom_frame → base_frame`` differentiated into twists at the TF rate (the stream of
+    ``bags.tf.odometry_from_tf``).
+    Raises BagError (one line) when the bag has neither."""
+    from localization.bags import BagError, open_bag
+    from localization.bags.tf import moving_edge, read_tf, tf_poses, twists_from_poses
+    from localization.core.odometry import TwistData
+    from localization.ros.conversions import twist_from_odometry
+
+    with open_bag(bag_path) as bag:
+        info = bag.topic_infos.get(odom_topic)
+        if info is not None and info.msgtype == ODOMETRY_TYPE:
+            msgs, rec = [], []
+            for m in bag.messages([odom_topic]):
+                msgs.append(twist_from_odometry(m.msg))
+                rec.append(m.t_ns)
+            return BagOdometry(odom_topic, msgs, np.asarray(rec, dtype=np.int64))
+        try:
+            tree = read_tf(bag)
+            t, poses = tf_poses(tree, odom_frame, base_frame)
+            record = moving_edge(tree, odom_frame, base_frame).record_ns
+        except BagError as exc:
+            raise BagError(f"no odometry in bag {bag.path}: no {ODOMETRY_TYPE} on {odom_topic} and {exc}") from None
+    tt, tw = twists_from_poses(t, poses)
+    rec = record[np.clip(np.searchsorted(t, tt, side="left"), 0, max(len(t) - 1, 0))]  # t is in stamp order
+    msgs = [TwistData(stamp=float(s), vx=float(v[0]), vy=float(v[1]), wz=float(v[2]), frame_id=odom_frame.lstrip("/"))
+            for s, v in zip(tt, tw)]
+    return BagOdometry(f"/tf {odom_frame.lstrip('/')} -> {base_frame.lstrip('/')}", msgs, rec)
+
+
+def bag_laser_mount(bag_path, scan_topic: str, fallback, base_frame: str = "base_link", log=None) -> tuple:
+    """The laser's (x, y, yaw) in ``base_frame`` from the bag's TF (``bags.tf.laser_mount_from_bag``,
+    as the node looks it up), else ``fallback`` (the laser_offset_* parameters); with ``log``, one
+    line saying which was used."""
+    from localization.bags.tf import laser_mount_from_bag
+    mount = laser_mount_from_bag(bag_path, scan_topic, base_frame)
+    if mount is None:
+        if log:
+            log(f"no {base_frame} -> laser transform in the bag's TF: laser pose from laser_offset_* "
+                f"({', '.join(f'{v:.3f}' for v in fallback)})")
+        return tuple(float(v) for v in fallback)
+    if log:
+        log(mount.describe())
+    if not mount.upright and log:
+        log("the lidar is mounted upside down: its scan is mirrored, which this package does not model")
+    return tuple(float(v) for v in mount.pose)
+
+
+def read_scans(bag_path, scan_topic: str) -> list:
+    """Every sensor_msgs/LaserScan on ``scan_topic`` as ``ScanData`` (raises BagError without the topic)."""
+    from localization.bags import BagError, open_bag
+    from localization.ros.conversions import scan_from_msg
+    with open_bag(bag_path) as bag:
+        if scan_topic not in bag.topic_infos:
+            raise BagError(f"scan topic {scan_topic} not in bag {bag_path}")
+        return [scan_from_msg(m.msg) for m in bag.messages([scan_topic])]
 
 
 # --------------------------------------------------------------------------------------------

@@ -82,7 +82,8 @@ def main(argv=None) -> int:
         quiet = args.json or args.quiet
         with busy("calibrating", enabled=False if quiet else None) as say:  # a bar when stderr is a terminal
             res = calibrate_bag(args.bag, occupancy_map, scan_topic, odom_topic, args.initial_pose, mount,
-                                log=None if quiet else say)
+                                log=None if quiet else say, scan_stamp=params.scan_stamp,
+                                scan_stamp_offset=params.scan_stamp_offset, odom_frame=params.odom_frame)
         if args.out is not None:
             try:
                 Path(args.out).write_text(res.parameter_yaml())
@@ -103,6 +104,10 @@ def main(argv=None) -> int:
               f"{res.residual_rms['xy_m']:.4f} m, {res.residual_rms['theta_rad']:.4f} rad")
         for k in KEYS:
             print(f"{k:<{width}}  {d[k]: .5f}  ± {d['uncertainty'][k]:.5f}")
+        r, c = d["rejected"], d["channel_offsets"]
+        print(f"rejected as slip/skid: {r['pairs']} of {r['of']} scan pairs ({r['seconds']:.1f} s); time offset of "
+              f"the speed alone {c['speed_s']:+.3f} ± {c['speed_sigma_s']:.3f} s, of the yaw rate alone "
+              f"{c['yaw_rate_s']:+.3f} ± {c['yaw_rate_sigma_s']:.3f} s")
         if args.out is not None:
             print(f"parameters written to {args.out}")
     return 0
