@@ -1,5 +1,5 @@
 """``python -m localization.benchmarks.models``: the two sensor models, fixed and KLD-adaptive
-particle counts, compared on the same data (issue 12; the table of docs/models.md).
+particle counts, compared on the same data (the table of docs/models.md).
 
 Configurations (each on top of the scenario's shipped parameter file):
 

@@ -31,7 +31,7 @@ from localization.core.global_seeder import GlobalSeeder
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.policies import UpdatePolicy
 from localization.core.recovery import RecoveryPolicy
-from localization.core.scan import ScanData, downsample_scan, sweep_increment
+from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
 from localization.core.timeline import OdometryTimeline
 
 
@@ -56,14 +56,16 @@ def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
     return beams, rmin, rmax
 
 
-def deskew_offsets(scan: ScanData, t_s: float, idx, twist, laser_offset):
+def deskew_offsets(scan: ScanData, t_s: float, idx, twist, laser_offset, stamp: str = "first_beam",
+                   stamp_offset: float = 0.0):
     """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each used beam's own time
-    t_b = stamp + i_b · time_increment, Δ_b the robot's arc under ``twist`` (the odometry's at t_s), L
-    the laser pose; None without sweep timing."""
+    t_b = t_0 + i_b · time_increment (t_0 the first beam's time under the scan_stamp convention), Δ_b
+    the robot's arc under ``twist`` (the odometry's at t_s), L the laser pose; None without sweep timing."""
     sweep = sweep_increment(scan)
     if not sweep > 0:
         return None
-    robot = integrate_twists(twist[0], twist[1], twist[2], scan.stamp + np.asarray(idx) * sweep - t_s)
+    t0 = first_beam_time(scan, stamp, stamp_offset)
+    robot = integrate_twists(twist[0], twist[1], twist[2], t0 + np.asarray(idx) * sweep - t_s)
     laser = np.asarray(laser_offset, dtype=float)
     return compose(inverse(laser), compose(robot, laser))
 
@@ -112,8 +114,8 @@ class ScanStep:
         b, rmin, rmax = usable
         beams = (b.ranges, b.angles, rmin, rmax)
         self.seeder.seed(pf, occupancy_map, b.ranges, b.angles, rmax)
-        offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset) if (
-            p.deskew and model.supports_deskew) else None
+        offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset, p.scan_stamp,
+                                 p.scan_stamp_offset) if p.deskew and model.supports_deskew else None
         if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
             self.impossible += 1
             if self.impossible < p.max_impossible_scans:

@@ -19,12 +19,15 @@ topic          type                             what
 
 The pieces, each next to its math (PythonRobotics style):
 
-1. ``CarModel``: Ackermann (kinematic bicycle) model about the rear axle centre (= base_link).
-2. ``RouteFollower``: pure pursuit along a waypoint route, speed reduced in turns.
+1. ``CarModel``: Ackermann (kinematic bicycle) model about the rear axle centre (= base_link);
+   or ``DiffDriveModel``: a differential-drive base about its wheel axle centre.
+2. ``RouteFollower``: pure pursuit along a waypoint route, speed reduced in turns; the
+   differential base's ``TurnAndDriveFollower``: turns on the spot, straight legs.
 3. ``simulate_trajectory``: the physics loop at 200 Hz (controls constant within a step).
 4. ``Lidar``: exact ray casting in the map + Gaussian range noise.
 5. ``odometry_from_trajectory``: twist averaged over each odometry period, noise and bias added,
-   odometry pose integrated from the reported twist (as a wheel-odometry driver would).
+   odometry pose integrated from the reported twist (as a wheel-odometry driver would); the
+   differential base's from its wheel encoders (``wheel_odometry``: ticks, wheel slip).
 6. ``write_bag``: messages built with ``localization.bags`` and written in time order.
 
 Everything is deterministic given ``SimConfig.seed``. The trajectory does not depend on the
@@ -37,13 +40,23 @@ along the route from the point nearest to the new pose.
 """
 from __future__ import annotations
 
-from localization.sim.config import PHYSICS_RATE_HZ, SENSOR_START_DELAY_NS, T0_NS, SimConfig, SimulationError
+from localization.sim.config import (
+    DIFFERENTIAL_ROUTE,
+    DIFFERENTIAL_START,
+    PHYSICS_RATE_HZ,
+    SENSOR_START_DELAY_NS,
+    T0_NS,
+    SimConfig,
+    SimulationError,
+    differential_trial,
+)
 from localization.sim.recorder import Recording, code_version, record, simulate, write_bag
-from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory
+from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory, wheel_odometry
 from localization.sim.trajectory import Trajectory, clearance_at, clearance_grid, simulate_trajectory
-from localization.sim.vehicle import CarModel, RouteFollower, densify
+from localization.sim.vehicle import CarModel, DiffDriveModel, RouteFollower, TurnAndDriveFollower, densify
 
-__all__ = ["PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS", "CarModel", "Lidar", "OdometryStream", "Recording",
-           "RouteFollower", "SimConfig", "SimulationError", "Trajectory", "clearance_at", "clearance_grid",
-           "code_version", "densify", "odometry_from_trajectory", "record", "simulate", "simulate_trajectory",
-           "write_bag"]
+__all__ = ["DIFFERENTIAL_ROUTE", "DIFFERENTIAL_START", "PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS",
+           "CarModel", "DiffDriveModel", "Lidar", "OdometryStream", "Recording", "RouteFollower", "SimConfig",
+           "SimulationError", "Trajectory", "TurnAndDriveFollower", "clearance_at", "clearance_grid", "code_version",
+           "densify", "differential_trial", "odometry_from_trajectory", "record", "simulate", "simulate_trajectory",
+           "wheel_odometry", "write_bag"]

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
-from localization.sim.vehicle import CarModel, SimulationError
+from localization.sim.vehicle import CarModel, DiffDriveModel, SimulationError
 
-__all__ = ["PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS", "CarModel", "SimConfig", "SimulationError"]
+__all__ = ["DIFFERENTIAL_ROUTE", "DIFFERENTIAL_START", "PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS",
+           "CarModel", "DiffDriveModel", "SimConfig", "SimulationError", "differential_trial"]
 
 #: Bag time of the first message (ns). The static transform and the initial pose are stamped
 #: here; simulated time 0 (the first /odom, /scan and /tf) is ``SENSOR_START_DELAY_NS`` later,
@@ -39,7 +40,9 @@ class SimConfig:
     seed: int = 0
     # odometry
     odom_rate: float = 50.0
-    odom_noise: float = 0.0  # std of the Gaussian noise added to each of vx, vy (m/s) and ωz (rad/s)
+    # std of the Gaussian noise added to each of vx, vy (m/s) and ωz (rad/s); a differential base's odometry
+    # (wheel encoders) reports vy = 0 exactly and gets it on vx and ωz only
+    odom_noise: float = 0.0
     speed_scale: float = 1.0  # reported vx = speed_scale · true vx (+ noise): e.g. 0.95 runs 5 % short
     yaw_rate_scale: float = 1.0  # reported ωz = yaw_rate_scale · true ωz + yaw_rate_bias (+ noise)
     yaw_rate_bias: float = 0.0  # rad/s added to the reported ωz
@@ -62,9 +65,25 @@ class SimConfig:
     # robustness tests: teleport the car
     kidnap_at: float | None = None  # seconds after the start
     kidnap_to: tuple | None = None  # (x, y, yaw)
-    car: CarModel = field(default_factory=CarModel)
+    car: CarModel | DiffDriveModel = field(default_factory=CarModel)  # the vehicle (its kinematics and follower)
 
     def key(self) -> str:
         """Stable digest of the configuration (for caches)."""
         text = repr(sorted(asdict(self).items()))
         return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+
+#: A differential base's drive in the Stata basement (map frame, m): from the diagonal corridor
+#: south-west, a U-turn on the spot, back north-east past the start, a turn on the spot to the north,
+#: north, a turn on the spot to the west into the y = 25.7 corridor
+DIFFERENTIAL_START = (-6.6, 20.5, -2.24)
+DIFFERENTIAL_ROUTE = (DIFFERENTIAL_START[:2], (-9.0, 17.8), (-5.9, 21.2), (-5.6, 23.6), (-6.6, 25.5), (-10.0, 25.7))
+
+
+def differential_trial(**changes) -> SimConfig:
+    """The differential-drive trial: a Pioneer-like base (``DiffDriveModel``) at 0.6 m/s with turns on
+    the spot, wheel-encoder odometry at 20 Hz (ticks, wheel slip), a 10 Hz lidar; ``changes`` override
+    any field."""
+    cfg = SimConfig(start=DIFFERENTIAL_START, waypoints=DIFFERENTIAL_ROUTE, speed=0.6, seed=7, odom_rate=20.0,
+                    scan_rate=10.0, car=DiffDriveModel(), initial_offset=(0.1, -0.1, 0.05), initial_std=(0.2, 0.1))
+    return replace(cfg, **changes)

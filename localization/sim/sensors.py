@@ -1,5 +1,5 @@
 """The simulated sensors: a Hokuyo-like lidar (exact ray casting + noise) and wheel odometry
-(noise, scale and bias) derived from the true trajectory."""
+(noise, scale and bias; a differential base: wheel encoders) derived from the true trajectory."""
 from __future__ import annotations
 
 import math
@@ -12,6 +12,7 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.raycast.exact import ExactRayCaster
 from localization.sim.config import PHYSICS_RATE_HZ, SimConfig, SimulationError
 from localization.sim.trajectory import Trajectory
+from localization.sim.vehicle import DiffDriveModel
 
 # ============================================================================================
 # 4. Lidar
@@ -100,7 +101,10 @@ def odometry_from_trajectory(traj: Trajectory, cfg: SimConfig, rng: np.random.Ge
         vy =                 N(0, k²)            k = odom_noise (Table 1 of the lab report)
         ωz = yaw_rate_scale · w̄ + yaw_rate_bias + N(0, k²)
 
-    and the odometry pose integrates the *reported* twist from (0, 0, 0) in frame ``odom``."""
+    and the odometry pose integrates the *reported* twist from (0, 0, 0) in frame ``odom``.
+
+    A differential base (``cfg.car`` a ``DiffDriveModel``) measures its wheels instead
+    (``wheel_odometry``): v̄ and w̄ above become the twist its encoders report, vy is 0."""
     per = PHYSICS_RATE_HZ / cfg.odom_rate
     if abs(per - round(per)) > 1e-9:
         raise SimulationError(f"odom_rate must divide {PHYSICS_RATE_HZ} Hz, got {cfg.odom_rate}")
@@ -118,14 +122,43 @@ def odometry_from_trajectory(traj: Trajectory, cfg: SimConfig, rng: np.random.Ge
         b = t - cfg.odom_latency
         for col, rate in ((0, traj.v), (2, traj.w)):
             true_twist[:, col] = (_integral(traj, rate, b) - _integral(traj, rate, b - period)) / period
+    measured = true_twist
+    if isinstance(cfg.car, DiffDriveModel):
+        measured = wheel_odometry(traj, cfg, t, rng)
     noise = rng.standard_normal((m, 3)) * cfg.odom_noise
-    twist = true_twist * np.array([cfg.speed_scale, 1.0, cfg.yaw_rate_scale]) + noise
+    if isinstance(cfg.car, DiffDriveModel):
+        noise[:, 1] = 0.0  # wheel encoders cannot see sideways motion
+    twist = measured * np.array([cfg.speed_scale, 1.0, cfg.yaw_rate_scale]) + noise
     twist[:, 2] += cfg.yaw_rate_bias
     period = 1.0 / cfg.odom_rate
     pose = np.zeros((m, 3))
     for k in range(1, m):
         pose[k] = compose(pose[k - 1], integrate_twist(*twist[k], period))
     return OdometryStream(t, twist, pose, true_twist)
+
+
+def wheel_odometry(traj: Trajectory, cfg: SimConfig, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The twist (M, 3) a differential base's wheel-odometry driver reports at stamps ``t``: each
+    wheel's angle φ(τ) = ∫ φ̇ dτ (``DiffDriveModel.wheel_rates`` of the true v, ω) at τ = t − latency,
+    plus wheel slip (a random walk: variance ``wheel_slip``² per radian the wheel turns), counted in
+    whole encoder ticks; message k reports the tick differences over its period::
+
+        n(τ) = floor((φ(τ) + slip(τ)) · ticks / 2π),   Δφ_k = (n(τ_k) − n(τ_k − T)) · 2π / ticks
+        (vx, ωz) = twist_from_wheels(Δφ_L, Δφ_R, T),   vy = 0"""
+    base: DiffDriveModel = cfg.car
+    period = 1.0 / cfg.odom_rate
+    tau = np.asarray(t, dtype=float) - cfg.odom_latency
+    tick = 2.0 * math.pi / base.encoder_ticks
+    out = np.zeros((len(tau), 3))
+    deltas = []
+    for rate in base.wheel_rates(traj.v, traj.w):
+        angle = _integral(traj, rate, tau)  # at each stamp (the wheel stands before the start)
+        slip = np.cumsum(rng.standard_normal(len(tau)) * base.wheel_slip * np.sqrt(np.abs(np.diff(angle, prepend=0.0))))
+        ticks = np.floor((angle + slip) / tick)
+        before = np.concatenate([[0.0], ticks[:-1]])
+        deltas.append((ticks - before) * tick)
+    out[:, 0], out[:, 2] = base.twist_from_wheels(deltas[0], deltas[1], period)
+    return out
 
 
 def _integral(traj: Trajectory, rate: np.ndarray, t) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The physics loop: the car follows its route at ``PHYSICS_RATE_HZ``; the true trajectory."""
+"""The physics loop: the vehicle follows its route at ``PHYSICS_RATE_HZ``; the true trajectory."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,6 @@ import numpy as np
 from localization.core.geometry import compose, integrate_twist, integrate_twists
 from localization.core.occupancy_map import OccupancyMap
 from localization.sim.config import PHYSICS_RATE_HZ, SimConfig, SimulationError
-from localization.sim.vehicle import RouteFollower
 
 # ============================================================================================
 # 3. The physics loop
@@ -55,15 +54,16 @@ def clearance_at(occupancy_map: OccupancyMap, grid: np.ndarray, xy) -> np.ndarra
 
 
 def simulate_trajectory(cfg: SimConfig, occupancy_map: OccupancyMap) -> Trajectory:
-    """Drive the route with pure pursuit and the Ackermann model at ``PHYSICS_RATE_HZ``.
+    """Drive the route with the vehicle's follower (the car: pure pursuit and the Ackermann model;
+    the differential base: turns on the spot and straight legs) at ``PHYSICS_RATE_HZ``.
 
-    Raises ``SimulationError`` when the car would leave free space (a collision circle comes
+    Raises ``SimulationError`` when the vehicle would leave free space (a collision circle comes
     closer than its radius to a wall or to unknown space)."""
     car = cfg.car
     dt = 1.0 / PHYSICS_RATE_HZ
     if not cfg.waypoints:
         raise SimulationError("no route: give waypoints (or a named trial)")
-    follower = RouteFollower(cfg.waypoints, closed=cfg.closed)
+    follower = car.follower(cfg.waypoints, closed=cfg.closed)
     follower.reset_to_nearest(cfg.start[:2])
     max_steps = int(round((cfg.duration if cfg.duration is not None else 3600.0) * PHYSICS_RATE_HZ))
     kidnap_step = None if cfg.kidnap_at is None else int(round(cfg.kidnap_at * PHYSICS_RATE_HZ))
@@ -72,7 +72,7 @@ def simulate_trajectory(cfg: SimConfig, occupancy_map: OccupancyMap) -> Trajecto
     clear = clearance_grid(occupancy_map)
 
     pose = np.asarray(cfg.start, dtype=float).copy()
-    v, steer = 0.0, 0.0
+    v, u = 0.0, 0.0  # speed and the second input (steering angle or yaw rate)
     poses, vs, ws, steers = [pose.copy()], [], [], []
     min_clear = math.inf
     for i in range(max_steps):
@@ -80,14 +80,14 @@ def simulate_trajectory(cfg: SimConfig, occupancy_map: OccupancyMap) -> Trajecto
             pose = np.asarray(cfg.kidnap_to, dtype=float).copy()
             poses[-1] = pose.copy()  # the truth jumps at this instant
             follower.reset_to_nearest(pose[:2])
-        v_cmd, steer_cmd = follower.control(pose, v, car, cfg.speed)
-        v, steer = car.limit(v, steer, v_cmd, steer_cmd, dt)
-        w = car.yaw_rate(v, steer)
+        v_cmd, u_cmd = follower.control(pose, v, car, cfg.speed)
+        v, u = car.limit(v, u, v_cmd, u_cmd, dt)
+        w = car.yaw_rate(v, u)
         pose = compose(pose, integrate_twist(v, 0.0, w, dt))
         poses.append(pose.copy())
         vs.append(v)
         ws.append(w)
-        steers.append(steer)
+        steers.append(car.steering(u))
         c = float(clearance_at(occupancy_map, clear, car.footprint_points(pose)).min())
         min_clear = min(min_clear, c)
         if c < car.radius:

@@ -1,4 +1,11 @@
-"""The simulated car: Ackermann kinematics (``CarModel``) and a pure-pursuit route follower."""
+"""The simulated vehicles and their route followers: the car (Ackermann kinematics, ``CarModel``,
+pure pursuit ``RouteFollower``) and a differential-drive base (``DiffDriveModel``, turning on the
+spot between straight legs ``TurnAndDriveFollower``).
+
+A vehicle works on a state (v, u): the speed v and its second input u (the car: the steering angle
+δ; the differential base: the yaw rate ω). Both offer ``limit`` (apply the command limits over a
+step), ``yaw_rate(v, u)``, ``steering(u)`` (the steering angle recorded), ``footprint_points``,
+``radius`` and ``follower(waypoints, closed)`` (their route follower)."""
 from __future__ import annotations
 
 import math
@@ -63,6 +70,13 @@ class CarModel:
         """Centres (2, 2) of the collision circles: rear axle and front axle."""
         x, y, th = pose
         return np.array([[x, y], [x + self.wheelbase * math.cos(th), y + self.wheelbase * math.sin(th)]])
+
+    def steering(self, steer: float) -> float:
+        """The steering angle recorded in the trajectory (the car's second input is δ itself)."""
+        return steer
+
+    def follower(self, waypoints, closed: bool = False) -> "RouteFollower":
+        return RouteFollower(waypoints, closed=closed)
 
 
 # ============================================================================================
@@ -199,3 +213,176 @@ class RouteFollower:
         if math.isfinite(car.max_lateral_accel):
             v_cmd = min(v_cmd, float(self.speed_profile(car)[self.index]))
         return v_cmd, steer
+
+
+# ============================================================================================
+# 1b. Differential drive
+# ============================================================================================
+
+
+@dataclass(frozen=True)
+class DiffDriveModel:
+    """A differential-drive base (Pioneer 3-DX-like), reference point the wheel axle's centre
+    (= base_link). Inputs: speed v and yaw rate ω; the wheels turn at::
+
+        ẋ = v cos θ,   ẏ = v sin θ,   θ̇ = ω
+        φ̇_R = (v + ω b/2) / r_w,   φ̇_L = (v − ω b/2) / r_w       b = track, r_w = wheel radius
+
+    so it turns on the spot (v = 0, ω ≠ 0) and never moves sideways. Limits: |v| ≤ max_speed,
+    |ω| ≤ max_yaw_rate, |dv/dt| ≤ max_accel, |dω/dt| ≤ max_yaw_accel. Wheel encoders
+    (``sensors.odometry_from_trajectory``): ``encoder_ticks`` per wheel revolution, and wheel slip as a
+    random walk of each wheel's measured angle, variance ``wheel_slip``² per radian the wheel turns
+    (rad/√rad)."""
+
+    track: float = 0.33  # m between the wheels
+    wheel_radius: float = 0.0975  # m
+    max_speed: float = 0.7  # m/s
+    max_yaw_rate: float = 1.2  # rad/s
+    max_accel: float = 1.0  # m/s²
+    max_yaw_accel: float = 3.0  # rad/s²
+    radius: float = 0.26  # collision circle about base_link (m)
+    encoder_ticks: int = 2000  # per wheel revolution
+    wheel_slip: float = 0.01  # rad/√rad: std of a wheel's measured angle error per √(radian turned)
+
+    def yaw_rate(self, v: float, w: float) -> float:
+        """θ̇ = ω (the second input is the yaw rate itself)."""
+        return w
+
+    def steering(self, w: float) -> float:
+        """No steering angle: 0."""
+        return 0.0
+
+    def limit(self, v: float, w: float, v_cmd: float, w_cmd: float, dt: float) -> tuple[float, float]:
+        """Apply the speed, yaw-rate and acceleration limits to a command (v_cmd, ω_cmd)."""
+        v_cmd = float(np.clip(v_cmd, -self.max_speed, self.max_speed))
+        w_cmd = float(np.clip(w_cmd, -self.max_yaw_rate, self.max_yaw_rate))
+        v_new = v + float(np.clip(v_cmd - v, -self.max_accel * dt, self.max_accel * dt))
+        w_new = w + float(np.clip(w_cmd - w, -self.max_yaw_accel * dt, self.max_yaw_accel * dt))
+        return v_new, w_new
+
+    def step(self, pose, v: float, w: float, dt: float) -> np.ndarray:
+        """Pose after driving (v, ω) for dt: the constant-twist arc."""
+        return compose(pose, integrate_twist(v, 0.0, w, dt))
+
+    def wheel_rates(self, v, w):
+        """(φ̇_L, φ̇_R) in rad/s for speed v and yaw rate ω (arrays broadcast)."""
+        v, w = np.asarray(v, dtype=float), np.asarray(w, dtype=float)
+        return (v - 0.5 * self.track * w) / self.wheel_radius, (v + 0.5 * self.track * w) / self.wheel_radius
+
+    def twist_from_wheels(self, d_left, d_right, dt: float):
+        """(v, ω) from the wheels' angle changes over dt (what a wheel-odometry driver reports)::
+
+            v = r_w (Δφ_R + Δφ_L) / (2 dt),   ω = r_w (Δφ_R − Δφ_L) / (b dt)"""
+        d_left, d_right = np.asarray(d_left, dtype=float), np.asarray(d_right, dtype=float)
+        return (self.wheel_radius * (d_right + d_left) / (2.0 * dt),
+                self.wheel_radius * (d_right - d_left) / (self.track * dt))
+
+    def footprint_points(self, pose) -> np.ndarray:
+        """Centre (1, 2) of the collision circle: base_link."""
+        return np.asarray(pose, dtype=float)[None, :2]
+
+    def follower(self, waypoints, closed: bool = False) -> "TurnAndDriveFollower":
+        return TurnAndDriveFollower(waypoints, closed=closed)
+
+
+class TurnAndDriveFollower:
+    """A differential base's way along a waypoint route: turn on the spot to face the next waypoint,
+    drive straight to it, stop; repeat. While turning (e_θ = bearing to the waypoint − θ)::
+
+        v = 0,   ω = sign(e_θ) · min(ω_max, k_turn |e_θ|, sqrt(2 · 0.5 α_max |e_θ|))
+
+    until |e_θ| < turn_tolerance and |ω| is small; while driving, pure pursuit onto the leg from the
+    previous waypoint (goal ``lookahead`` ahead on the leg, capped at the waypoint)::
+
+        v = min(speed, sqrt(2 · 0.5 a_max · d)),   ω = 2 v sin(α) / L_d         d = distance to the waypoint
+
+    and the waypoint is reached within ``arrive_tolerance``. Legs shorter than that are skipped.
+    """
+
+    def __init__(self, waypoints, closed: bool = False, lookahead: float = 0.6, k_turn: float = 3.0,
+                 turn_tolerance: float = 0.01, arrive_tolerance: float = 0.03):
+        pts = np.asarray(waypoints, dtype=float).reshape(-1, 2)
+        if len(pts) < 2:
+            raise SimulationError("a route needs at least two waypoints")
+        self.closed = bool(closed)
+        self.points = pts
+        legs = np.hypot(*np.diff(np.vstack([pts, pts[:1]]) if self.closed else pts, axis=0).T)
+        self.length = float(legs.sum())
+        self.lookahead = lookahead
+        self.k_turn = k_turn
+        self.turn_tolerance = turn_tolerance
+        self.arrive_tolerance = arrive_tolerance
+        self.target = 0  # index of the waypoint driven to
+        self.leg_start = pts[0].copy()
+        self.turning = True
+        self.done = False
+        self.travelled = 0.0
+
+    def reset_to_nearest(self, xy) -> None:
+        """Drive (after turning) to the waypoint nearest to ``xy`` (start, or after a kidnapping)."""
+        xy = np.asarray(xy, dtype=float)[:2]
+        self.target = int(np.argmin(np.hypot(*(self.points - xy).T)))
+        if np.hypot(*(self.points[self.target] - xy)) < self.arrive_tolerance:
+            self._advance()
+        self.leg_start = xy.copy()
+        self.turning = True
+
+    def _advance(self) -> None:
+        nxt = self.target + 1
+        if nxt >= len(self.points):
+            if not self.closed:
+                self.done = True
+                return
+            nxt = 0
+        self.target = nxt
+
+    def distance_to_end(self) -> float:
+        if self.closed:
+            return math.inf
+        if self.done:
+            return 0.0
+        rest = np.hypot(*np.diff(self.points[self.target:], axis=0).T).sum() if self.target + 1 < len(self.points) \
+            else 0.0
+        return float(rest + np.hypot(*(self.points[self.target] - self.leg_start)))
+
+    def control(self, pose, v: float, base: DiffDriveModel, speed: float) -> tuple[float, float]:
+        """(v_cmd, ω_cmd) for the current pose and speed."""
+        x, y, th = pose
+        if self.done:
+            return 0.0, 0.0
+        goal = self.points[self.target]
+        dist = math.hypot(goal[0] - x, goal[1] - y)
+        if not self.turning and (dist < self.arrive_tolerance or self._passed(x, y)) and abs(v) < 0.02:
+            self.travelled += math.hypot(*(goal - self.leg_start))
+            self.leg_start = goal.copy()
+            self._advance()
+            self.turning = True
+            if self.done:
+                return 0.0, 0.0
+            goal = self.points[self.target]
+            dist = math.hypot(goal[0] - x, goal[1] - y)
+        if self.turning:
+            err = wrap_angle(math.atan2(goal[1] - y, goal[0] - x) - th)
+            rate = min(base.max_yaw_rate, self.k_turn * abs(err), math.sqrt(base.max_yaw_accel * abs(err)))
+            if abs(err) < self.turn_tolerance:
+                self.turning = False
+            else:
+                return 0.0, math.copysign(rate, err)
+        if self._passed(x, y):
+            return 0.0, 0.0  # overshot the waypoint: stop there
+        # pure pursuit onto the leg leg_start -> goal
+        leg = goal - self.leg_start
+        length = max(float(np.hypot(*leg)), 1e-9)
+        along = float(np.dot(np.array([x, y]) - self.leg_start, leg) / length)
+        ahead = min(along + self.lookahead, length)
+        target = self.leg_start + leg * (ahead / length)
+        alpha = wrap_angle(math.atan2(target[1] - y, target[0] - x) - th)
+        ld = max(math.hypot(target[0] - x, target[1] - y), 1e-6)
+        v_cmd = min(speed, math.sqrt(base.max_accel * max(dist - 0.5 * self.arrive_tolerance, 0.0)))
+        return v_cmd, 2.0 * v_cmd * math.sin(alpha) / ld
+
+    def _passed(self, x: float, y: float) -> bool:
+        """The robot is beyond the current waypoint along its leg."""
+        leg = self.points[self.target] - self.leg_start
+        length = float(np.hypot(*leg))
+        return length > 0 and float(np.dot(np.array([x, y]) - self.leg_start, leg)) / length >= length
