@@ -117,3 +117,65 @@ def _fake_metrics(**over):
          "bag_duration_s": 1.0, "wall_time_s": 0.5, "particles": None, "truth_source": "/tf"}
     m.update(over)
     return m
+
+
+# --------------------------------------------------------------------------------------------
+# A bag without an odometry topic: odometry from /tf odom -> base_link, the laser mount from TF
+# --------------------------------------------------------------------------------------------
+
+
+class _Info:
+    def __init__(self, msgtype, count=10):
+        self.msgtype, self.count = msgtype, count
+
+
+def test_check_topics_accepts_tf_odometry_only_without_the_topic():
+    from localization.eval.replay import ReplayError, check_topics, tf_odometry
+    scan = {"/base_scan": _Info("sensor_msgs/msg/LaserScan")}
+    ros1_tf = {**scan, "/tf": _Info("tf/msg/tfMessage")}
+    assert tf_odometry(ros1_tf, "/odom")
+    check_topics(ros1_tf, "b.bag", "/base_scan", "/odom", None, "/initialpose", False)  # no error
+    with pytest.raises(ReplayError, match="odometry topic /odom not in bag"):
+        check_topics(scan, "b.bag", "/base_scan", "/odom", None, "/initialpose", False)
+    # an odometry topic of the wrong type is still an error, /tf or not
+    wrong = {**ros1_tf, "/odom": _Info("geometry_msgs/msg/PoseStamped")}
+    assert not tf_odometry(wrong, "/odom")
+    with pytest.raises(ReplayError, match="expected nav_msgs/msg/Odometry"):
+        check_topics(wrong, "b.bag", "/base_scan", "/odom", None, "/initialpose", False)
+
+
+def test_tf_odometry_events_come_in_order_with_the_scans():
+    from localization.core.odometry import TwistData
+    from localization.core.scan import ScanData
+    from localization.eval.datasets import bag_odometry
+    from localization.eval.replay import bag_events
+    path = real_bag_path("lgfloor2")
+    odo = bag_odometry(path, "/odom")
+    assert odo.source == "/tf odom -> base_link" and len(odo.messages) > 1000
+    with open_bag(path) as bag:
+        events = list(bag_events(bag, ["/base_scan"], "/base_scan", "/odom", None, None, ("map", "base_link"),
+                                 [], [], odometry=odo))
+    twists = [e for e in events if isinstance(e, TwistData)]
+    scans = [e for e in events if isinstance(e, ScanData)]
+    assert len(twists) == len(odo.messages) and len(scans) == 1640
+    stamps = np.array([e.stamp for e in twists])
+    assert np.all(np.diff(stamps) > 0)  # TF odometry in stamp order
+    # interleaved with the scans by record time: odometry and scans alternate, not one block after the other
+    kinds = np.array([isinstance(e, ScanData) for e in events])
+    assert np.count_nonzero(np.diff(kinds.astype(int))) > 1000
+    assert np.any(np.hypot(np.array([e.vx for e in twists]), np.array([e.vy for e in twists])) > 0.1)  # it moves
+
+
+def test_bag_without_odometry_topic_replays_from_tf(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert R.main([str(real_bag_path("lgfloor2")), "--map", "lgfloor", "--params", "pioneer_params", "--global",
+                   "--particles", "300", "-p", "global_num_particles=5000", "--no-plots", "--no-reference",
+                   "--quiet", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if "odometry from /tf odom -> base_link" in ln]
+    assert len(lines) == 1, err  # said once, in one line
+    assert "laser pose in base_link from the bag's TF" in err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["odom_topic"] == "/tf odom -> base_link" and m["odometry"] > 1000 and m["scans"] == 1640
+    assert m["laser_source"] == "tf" and m["laser_offset"] == pytest.approx([0.135, 0.0, 0.0], abs=1e-9)
+    assert m["sensor_updates"] > 500

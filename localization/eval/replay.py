@@ -45,6 +45,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -97,6 +98,7 @@ class ReplayOptions:
     label: str = ""
     reference: bool | None = None  # score against a scan-matched reference track; None: when there is no truth
     on_scan: object | None = None  # called as on_scan(scan, localizer) after each scan (export.ReplayRecorder)
+    log: object | None = None  # log(line) for the odometry source and laser mount notes; None: one line on stderr
 
 
 @dataclass
@@ -131,6 +133,8 @@ class ReplayResult:
     corrected_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # every sensor-corrected estimate
     scan_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # s, scan clock: each scan's time
     scan_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # the estimate at each scan's time
+    laser_source: str = "parameters"  # where the laser mount came from: "parameters" or "tf" (the bag's TF)
+    laser_offset: tuple = ()  # (x m, y m, yaw rad): the laser mount used
 
     @property
     def has_truth(self) -> bool:
@@ -187,13 +191,22 @@ def _check_topic(infos: dict, topic: str, wanted: tuple, what: str, option: str,
         raise ReplayError(f"no {what} messages on {topic} in bag {bag_path}")
 
 
+def tf_odometry(infos: dict, odom_topic: str) -> bool:
+    """Whether a bag's odometry comes from TF: it has no ``odom_topic`` at all but has ``/tf``
+    (``tf2_msgs/msg/TFMessage`` or ROS 1's ``tf/msg/tfMessage``), read as ``datasets.bag_odometry`` reads it."""
+    from localization.bags.tf import TF_TYPES
+    return odom_topic not in infos and "/tf" in infos and infos["/tf"].msgtype in TF_TYPES
+
+
 def check_topics(infos: dict, bag_path, scan_topic: str, odom_topic: str, truth_topic: str | None,
                  init_topic: str, bag_initial_pose: bool) -> tuple[str | None, bool]:
     """Check a bag's scan and odometry topics (ReplayError naming the alternatives) and the truth
     topic (given, else ``/tf`` when the bag has it); returns (truth topic or None, whether the bag's
-    initial poses are used: ``bag_initial_pose`` and the bag has some)."""
+    initial poses are used: ``bag_initial_pose`` and the bag has some). A bag without ``odom_topic``
+    but with ``/tf`` passes (``tf_odometry``): its odometry is read from TF odom → base_link."""
     _check_topic(infos, scan_topic, (LASER_SCAN,), "scan", "--scan-topic", bag_path)
-    _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag_path)
+    if not tf_odometry(infos, odom_topic):
+        _check_topic(infos, odom_topic, (ODOMETRY,), "odometry", "--odom-topic", bag_path)
     if truth_topic is not None:
         if truth_topic not in infos:
             raise ReplayError(f"truth topic {truth_topic} not in bag {bag_path}")
@@ -207,10 +220,32 @@ def check_topics(infos: dict, bag_path, scan_topic: str, odom_topic: str, truth_
     return truth_topic, use_bag_init
 
 
+def _stderr(line: str) -> None:
+    print(f"{PROG}: {line}", file=sys.stderr, flush=True)
+
+
+def laser_mount_params(bag, scan_topic: str, params: Parameters, log=None) -> tuple[Parameters, str]:
+    """As the node does with ``laser_pose_from_tf``: the laser mount from the bag's TF (base_frame →
+    the scan's frame, ``bags.tf.laser_mount_from_bag``) replaces laser_offset_x/y/yaw when the bag
+    carries it; returns (parameters, "tf" or "parameters"). ``bag``: a path or an open reader."""
+    from localization.bags.tf import laser_mount_from_bag
+    if not params.laser_pose_from_tf:
+        return params, "parameters"
+    mount = laser_mount_from_bag(bag, scan_topic, params.base_frame)
+    if mount is None:
+        return params, "parameters"
+    if log is not None:
+        log(mount.describe() + f" (laser_offset_* {params.laser_offset_x:.3f}, {params.laser_offset_y:.3f}, "
+            f"{params.laser_offset_yaw:.3f} not used)")
+    x, y, yaw = (float(v) for v in mount.pose)
+    return Parameters(dict(params), laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw), "tf"
+
+
 def run_replay(opts: ReplayOptions) -> ReplayResult:
     """Replay a bag through the Localizer; collect estimates, truth, agreement and timing."""
     t_wall0 = time.perf_counter()
     params = opts.params
+    say = opts.log if opts.log is not None else _stderr
     occupancy_map = load_map(opts.map)
     map_path = occupancy_map.source
     scan_topic = opts.scan_topic or params.scan_topic
@@ -227,6 +262,16 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         truth_topic, use_bag_initialpose = check_topics(
             infos, bag.path, scan_topic, odom_topic, opts.truth_topic, init_topic,
             bag_initial_pose=opts.initial_pose is None and not opts.force_global)
+        odometry = None
+        if tf_odometry(infos, odom_topic):
+            from localization.eval.datasets import bag_odometry
+            try:
+                odometry = bag_odometry(bag.path, odom_topic, params.odom_frame, params.base_frame)
+            except BagError as exc:
+                raise ReplayError(str(exc)) from None
+            say(f"no odometry topic {odom_topic} in the bag: odometry from {odometry.source} "
+                f"({len(odometry.messages)} twists)")
+        params, laser_source = laser_mount_params(bag, scan_topic, params, say)
         if opts.initial_pose is not None:
             init_source = "--initial-pose"
         elif opts.force_global:
@@ -238,8 +283,8 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
         localizer = Localizer(params)
         localizer.set_map(occupancy_map)
-        topics = [scan_topic, odom_topic] + ([init_topic] if use_bag_initialpose else []) \
-            + ([truth_topic] if truth_topic else [])
+        topics = [scan_topic] + ([odom_topic] if odometry is None else []) \
+            + ([init_topic] if use_bag_initialpose else []) + ([truth_topic] if truth_topic else [])
         progress = _Progress(opts.progress, bag.start_ns, bag.end_ns, opts.label or bag_label(opts.bag))
         bag_duration = (bag.end_ns - bag.start_ns) * 1e-9
         if use_bag_initialpose:
@@ -251,7 +296,8 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         feeder = Feeder(localizer, make_scorer(occupancy_map, params))
         truth_t, truth_poses = [], []
         events = bag_events(bag, topics, scan_topic, odom_topic, init_topic if use_bag_initialpose else None,
-                            truth_topic, (parent, child), truth_t, truth_poses, progress=progress.update)
+                            truth_topic, (parent, child), truth_t, truth_poses, progress=progress.update,
+                            odometry=odometry)
         try:
             log = feeder.run(events, start, on_scan=opts.on_scan)
         except BagError as exc:
@@ -264,6 +310,8 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         raise ReplayError(f"no scan messages on {scan_topic} in bag {opts.bag}")
     if counts["odometry"] == 0:
         raise ReplayError(f"no odometry messages on {odom_topic} in bag {opts.bag}")
+    if odometry is not None:
+        odom_topic = odometry.source
     truth_t_arr = np.asarray(truth_t, dtype=float)
     truth_p_arr = np.asarray(truth_poses, dtype=float).reshape(-1, 3)
     order = np.argsort(truth_t_arr, kind="stable")
@@ -283,7 +331,9 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         if len(truth_t) else None,
         health=np.asarray(log.health, dtype=float),
         particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float),
-        corrected_t=corrected_t, corrected_poses=corrected_poses, scan_t=scan_t, scan_poses=scan_poses)
+        corrected_t=corrected_t, corrected_poses=corrected_poses, scan_t=scan_t, scan_poses=scan_poses,
+        laser_source=laser_source, laser_offset=(params.laser_offset_x, params.laser_offset_y,
+                                                 params.laser_offset_yaw))
     if opts.reference or (opts.reference is None and not res.has_truth):
         from localization.eval.progress import busy
         from localization.eval.reference import reference_for_bag
@@ -291,7 +341,9 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
             with busy("reference track", enabled=opts.progress) as say:  # the pass after the replay's bar
                 res.reference = reference_for_bag(
                     opts.bag, occupancy_map, scan_topic,
-                    (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw), odom_topic=odom_topic,
+                    (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
+                    odom_topic=opts.odom_topic or opts.params.odom_topic, odom_frame=params.odom_frame,
+                    base_frame=params.base_frame,
                     initial_pose=log.initial_pose, range_scale=params.lidar_scale_to_map_scale,
                     scan_stamp=params.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
                     log=say if opts.progress else None)
@@ -302,15 +354,24 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
 
 def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | None, truth_topic: str | None,
-               truth_frames: tuple, truth_t: list, truth_poses: list, progress=None):
+               truth_frames: tuple, truth_t: list, truth_poses: list, progress=None, odometry=None):
     """A bag's filter input in bag-time order, converted as the node converts it: ``TwistData``
     (odometry), ``ScanData`` (scans), ``InitialPose`` (``init_topic``; None: not read); the truth
     (``truth_topic``, ``truth_frames`` = (parent, child)) is collected into ``truth_t`` /
-    ``truth_poses`` on the way; ``progress(t_ns)`` per message."""
+    ``truth_poses`` on the way; ``progress(t_ns)`` per message. ``odometry``: a
+    ``datasets.BagOdometry`` (odometry from TF) whose twists are merged in at their record times
+    (each before a message recorded at the same time), instead of ``odom_topic``."""
     parent, child = truth_frames
+    twists = [] if odometry is None else odometry.messages
+    rec = np.zeros(0, dtype=np.int64) if odometry is None else np.asarray(odometry.record_ns, dtype=np.int64)
+    order = np.argsort(rec, kind="stable")
+    j = 0
     for m in bag.messages(topics):
         if progress is not None:
             progress(m.t_ns)
+        while j < len(order) and rec[order[j]] <= m.t_ns:
+            yield twists[order[j]]
+            j += 1
         if m.topic == truth_topic:
             _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_poses)
         if m.topic == scan_topic:
@@ -320,6 +381,9 @@ def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | 
         elif init_topic is not None and m.topic == init_topic:
             pc = pose_from_pose_with_covariance(m.msg)
             yield InitialPose(pc.stamp, np.asarray(pc.pose, dtype=float), pc.covariance)
+    while j < len(order):
+        yield twists[order[j]]
+        j += 1
 
 
 def _collect_truth(msg, msgtype: str, parent: str, child: str, out_t: list, out_p: list) -> None:
@@ -370,6 +434,9 @@ def compute_metrics(res: ReplayResult) -> dict:
         "max_jump_m": M.max_jump(res.est_poses),
         "has_truth": res.has_truth,
         "truth_source": res.truth_source,
+        "laser_source": res.laser_source,
+        "laser_offset": [float(v) for v in (res.laser_offset or (p.laser_offset_x, p.laser_offset_y,
+                                                                  p.laser_offset_yaw))],
         "health": M.agreement_stats(res.health),  # the filter's own health figure (fast average)
         "sensor_model": p.sensor_model,
         "adaptive_particles": p.adaptive_particles,

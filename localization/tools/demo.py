@@ -13,6 +13,17 @@
    scan deskewed (``odom_time_offset`` = -0.04, the latency the calibrator measures) and with
    both off (``align_odometry`` and ``deskew`` false: no time alignment at all). ``--skip-fast``.
 
+5. Held-out real-bag figures: each RSS 2022 bag replayed with the odometry and lidar calibration of
+   the OTHER two bags (``localization-calibrate`` on each of them, the mean of its
+   ``odom_time_offset``, ``odom_speed_scale`` and ``lidar_scale_to_map_scale``; everything else
+   from ``real_params.yaml``), next to the all-bags figures of step 2 (``real_params.yaml``, which
+   was calibrated on all three, the held-out bag included). The error is against the yardstick
+   (``localization.eval.reference``); the held-out table is the honest one. ``--only heldout``.
+6. The Pioneer 3-DX bags (``config/pioneer_params.yaml``, map lgfloor; trace0 from its start pose,
+   trace1 and lgfloor2 globally; lgfloor2's odometry from TF and its scans stamped at the first
+   beam): time to converge, largest jump, recoveries, scan–map agreement where the yardstick is
+   confident and the share of scans the localizer said disagree with the map. ``--only pioneer``.
+
 ``--motion-sweep`` adds a table of the real bags' scan-map agreement as the motion-noise
 parameters of ``real_params.yaml`` are scaled (how much the filter should trust the odometry).
 
@@ -30,9 +41,11 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import numpy as np
+
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
-from localization.eval.datasets import REAL_BAGS, REPORT_TRIALS, SIM_TRIALS, real_bag_path, sim_bag
+from localization.eval.datasets import PIONEER_BAGS, REAL_BAGS, REPORT_TRIALS, SIM_TRIALS, real_bag_path, sim_bag
 from localization.tools import args as args_
 
 PROG = "localization-demo"
@@ -45,16 +58,23 @@ MOTION_NOISE_PARAMS = ("motion_a_trans", "motion_a_lateral", "motion_a_rot", "mo
 
 
 def _replay_job(job: dict) -> dict:
-    """Run one replay (in a worker process); returns its metrics plus bookkeeping."""
+    """Run one replay (in a worker process); returns its metrics plus bookkeeping (``job["pioneer"]``:
+    with ``pioneer_metrics``)."""
     from localization.eval.replay import ReplayError, ReplayOptions, compute_metrics, run_replay, write_outputs
     t0 = time.perf_counter()
     try:
         params = Parameters.from_yaml(job["params_file"], **job["overrides"]) if job.get("params_file") \
             else Parameters(job["overrides"])
+        holding = StatusCounter()
         opts = ReplayOptions(Path(job["bag"]), job["map"], params, job.get("initial_pose"),
-                             label=job["label"], scan_topic=job.get("scan_topic"), odom_topic=job.get("odom_topic"))
+                             force_global=job.get("force_global", False),
+                             label=job["label"], scan_topic=job.get("scan_topic"), odom_topic=job.get("odom_topic"),
+                             on_scan=holding if job.get("pioneer") else None,
+                             log=lambda line: print(f"{PROG}: {job['label']}: {line}", file=sys.stderr, flush=True))
         res = run_replay(opts)
         metrics = compute_metrics(res)
+        if job.get("pioneer"):
+            metrics["pioneer"] = pioneer_metrics(res, holding)
         if job.get("out"):
             write_outputs(res, metrics, Path(job["out"]), plots=job.get("plots", True))
     except ReplayError as exc:
@@ -122,6 +142,181 @@ def real_table(results: list) -> str:
                   f"{'ref med':>7} {'p95':>6} {'max':>6} {'along':>7}", results, 6, row)
 
 
+# --------------------------------------------------------------------------------------------
+# Held-out calibration (step 5)
+# --------------------------------------------------------------------------------------------
+
+#: calibration result name -> parameter, the values a held-out fold takes from the other bags' calibration
+HELDOUT_KEYS = {"odom_time_offset_s": "odom_time_offset", "odom_speed_scale": "odom_speed_scale",
+                "lidar_scale_to_map_scale": "lidar_scale_to_map_scale"}
+
+
+def heldout_folds(bags, calibrate) -> dict:
+    """For each bag k of ``bags``: the parameter overrides calibrated WITHOUT it, the mean over the
+    other bags j ≠ k of ``calibrate(j)[key]`` for each key of ``HELDOUT_KEYS``, under its parameter
+    name; and ``"calibrated_on"``: those other bags. ``calibrate(name)`` -> dict of calibrated values
+    (``CalibrationResult.values``); it is called once per bag, only for bags some fold uses."""
+    bags = list(bags)
+    if len(bags) < 2:
+        raise ValueError(f"held-out folds need at least two bags, got {bags}")
+    values: dict = {}
+    folds = {}
+    for k in bags:
+        others = [b for b in bags if b != k]
+        for b in others:
+            if b not in values:
+                values[b] = calibrate(b)
+        fold = {param: float(sum(float(values[b][key]) for b in others) / len(others))
+                for key, param in HELDOUT_KEYS.items()}
+        fold["calibrated_on"] = others
+        folds[k] = fold
+    return folds
+
+
+def _calibrate_job(name: str) -> dict:
+    """``localization-calibrate`` on a real RSS bag (in a worker process): the mount guess, stamp
+    convention and start pose as for its replay; returns {name, values} or {name, error}."""
+    from localization.bags import BagError
+    from localization.core.occupancy_map import load_map
+    from localization.eval.calibration import CalibrationError, calibrate_bag
+    rb = REAL_BAGS[name]
+    params = Parameters.from_yaml(config_dir() / rb.params)
+    try:
+        res = calibrate_bag(real_bag_path(name), load_map(rb.map), rb.scan_topic, rb.odom_topic, rb.start,
+                            (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
+                            scan_stamp=params.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
+                            odom_frame=params.odom_frame, base_frame=params.base_frame)
+    except (CalibrationError, BagError) as exc:
+        return {"name": name, "error": str(exc)}
+    return {"name": name, "values": {k: float(v) for k, v in res.values.items()}}
+
+
+def calibrate_all(names, workers: int) -> dict:
+    """Calibrate each real bag once (in parallel); name -> values. Raises RuntimeError on a failure."""
+    names = list(names)
+    if workers <= 1 or len(names) <= 1:
+        out = [_calibrate_job(n) for n in names]
+    else:
+        with ProcessPoolExecutor(max_workers=min(workers, len(names))) as pool:
+            out = list(pool.map(_calibrate_job, names))
+    bad = [f"{r['name']}: {r['error']}" for r in out if "error" in r]
+    if bad:
+        raise RuntimeError("calibration failed: " + "; ".join(bad))
+    return {r["name"]: r["values"] for r in out}
+
+
+def calibration_table(values: dict, folds: dict) -> str:
+    lines = [f"{'bag':<6} {'calibrated alone':>40}   {'held-out fold (mean of the others)':>40}",
+             f"{'':<6} {'time offset':>12} {'speed scale':>12} {'range scale':>14}   "
+             f"{'time offset':>12} {'speed scale':>12} {'range scale':>14}"]
+    for name, fold in folds.items():
+        v = values.get(name)
+        own = (f"{v['odom_time_offset_s']:>+11.4f}s {v['odom_speed_scale']:>12.4f} "
+               f"{v['lidar_scale_to_map_scale']:>14.4f}" if v else f"{'(not calibrated)':>40}")
+        lines.append(f"{name:<6} {own}   {fold['odom_time_offset']:>+11.4f}s {fold['odom_speed_scale']:>12.4f} "
+                     f"{fold['lidar_scale_to_map_scale']:>14.4f}   (from {', '.join(fold['calibrated_on'])})")
+    return "\n".join(lines)
+
+
+def yardstick_table(results: list) -> str:
+    """Error against the yardstick: median, p95, mean along-track (m), and the agreement."""
+    def row(name, m):
+        ref = m.get("reference_error_m") or {}
+        along = (m.get("along_track_error_m") or {}).get("mean")
+        return (f"{name:<6} {_f(ref.get('median')):>7} {_f(ref.get('p95')):>6} "
+                f"{'n/a' if along is None else f'{along:+.3f}':>11} {_f(ref.get('max')):>6} "
+                f"{_f(m['scan_map_agreement']['median']):>9} {m.get('reference_scored', 0):>7}")
+    return _table(f"{'bag':<6} {'median':>7} {'p95':>6} {'mean along':>11} {'max':>6} {'agreement':>9} "
+                  f"{'scored':>7}", results, 6, row)
+
+
+# --------------------------------------------------------------------------------------------
+# The Pioneer bags (step 6)
+# --------------------------------------------------------------------------------------------
+
+CONVERGED_M = 0.5  # m: converged once the estimate stays this close to the yardstick's confident poses
+EARLY_REFERENCE_S = 10.0  # s: the yardstick must be confident this soon after the start to time convergence
+HEALTHY_AGREEMENT = 0.8  # else: converged at the first scan whose agreement reaches this
+
+
+class StatusCounter:
+    """``on_scan`` hook: counts the scans after which ``Localizer.status`` says the scans disagree with the map."""
+
+    def __init__(self):
+        self.scans = 0
+        self.holding = 0
+
+    def __call__(self, scan, localizer) -> None:
+        from localization.core.recovery import HOLDING
+        self.scans += 1
+        self.holding += int(localizer.status == HOLDING)
+
+
+def converge_time(t, err, threshold: float, t_start: float):
+    """Seconds from ``t_start`` to the first time from which ``err`` stays ≤ ``threshold`` (None:
+    never; NaN errors are not scored)."""
+    t, err = np.asarray(t, dtype=float), np.asarray(err, dtype=float)
+    ok = np.isfinite(err)
+    t, err = t[ok], err[ok]
+    if t.size == 0 or err[-1] > threshold:
+        return None
+    bad = np.flatnonzero(err > threshold)
+    first = 0 if bad.size == 0 else bad[-1] + 1
+    return float(max(t[first] - t_start, 0.0))
+
+
+def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
+    """Convergence, jumps, recoveries, agreement where the yardstick is confident, lost share."""
+    from localization.eval import metrics as M
+    p = res.options.params
+    t0 = res.init_t if res.init_t is not None else (float(res.scan_t[0]) if len(res.scan_t) else 0.0)
+    out = {"max_jump_m": M.max_jump(res.est_poses), "recoveries": int(res.counts.get("recoveries", 0))}
+    ref = res.reference
+    conv, how, conf_agree = None, None, None
+    if ref is not None and ref.good.any() and len(res.scan_t) >= 2:
+        rt, rp = ref.good_track()
+        order = np.argsort(res.scan_t, kind="stable")
+        est = M.interpolate_poses(rt, res.scan_t[order], res.scan_poses[order])
+        err = np.hypot(est[:, 0] - rp[:, 0], est[:, 1] - rp[:, 1])
+        if rt[0] - t0 <= EARLY_REFERENCE_S:
+            conv, how = converge_time(rt, err, CONVERGED_M, t0), "yardstick"
+        if len(res.agreement_t):
+            idx = np.clip(np.searchsorted(res.agreement_t, rt), 0, len(res.agreement_t) - 1)
+            near = np.abs(res.agreement_t[idx] - rt) < 1e-6
+            conf_agree = float(np.median(res.agreement[idx[near]])) if near.any() else None
+        out["confident_scans"] = int(ref.good.sum())
+        out["error_vs_yardstick_median_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None
+        far = np.flatnonzero(err > CONVERGED_M)  # where the estimate is off (for the report: when, how long)
+        out["off_share"] = float(far.size / max(np.isfinite(err).sum(), 1))
+        out["last_off_s"] = float(rt[far[-1]] - t0) if far.size else None
+    if how is None:
+        hit = np.flatnonzero(np.asarray(res.agreement) >= HEALTHY_AGREEMENT)
+        conv = float(res.agreement_t[hit[0]] - t0) if hit.size else None
+        how = f"agreement >= {HEALTHY_AGREEMENT}"
+    out.update(time_to_converge_s=conv, converge_by=how, confident_agreement_median=conf_agree)
+    h = np.asarray(res.health, dtype=float)
+    h = h[np.isfinite(h)]
+    out["health_lost_share"] = float(np.mean(h < p.health_lost_floor)) if h.size else None
+    out["holding_share"] = (holding.holding / holding.scans) if holding is not None and holding.scans else None
+    return out
+
+
+def pioneer_table(results: list) -> str:
+    def row(name, m):
+        pm = m.get("pioneer") or {}
+        conv = pm.get("time_to_converge_s")
+        start = "global" if m["initial_pose_source"].startswith("global") else "start pose"
+        return (f"{name:<9} {start:<13} {'never' if conv is None else f'{conv:.1f} s':>9} "
+                f"{pm.get('converge_by', ''):<16} {pm.get('max_jump_m', 0.0):>7.2f}m {pm.get('recoveries', 0):>5} "
+                f"{_f(pm.get('confident_agreement_median')):>9} {_f(pm.get('error_vs_yardstick_median_m')):>7} "
+                f"{_f(pm.get('holding_share')):>8} {_f(pm.get('health_lost_share')):>8}")
+    return _table(f"{'bag':<9} {'start':<13} {'converge':>9} {'(by)':<16} {'max jump':>8} {'recov':>5} "
+                  f"{'agreement':>9} {'ref med':>7} {'disagree':>8} {'health<':>8}", results, 9, row)
+
+
+ONLY = ("heldout", "pioneer")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=PROG, description="Record (or reuse) the simulated Stata basement trials, "
                                  "replay them and the real RSS 2022 bags, print the results table.")
@@ -137,6 +332,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--skip-sim", action="store_true", help="only the real bags")
     ap.add_argument("--skip-real", action="store_true", help="only the simulated trials")
     ap.add_argument("--skip-fast", action="store_true", help="skip the fast trial (aligned vs unaligned)")
+    ap.add_argument("--skip-heldout", action="store_true", help="skip the held-out calibration of the real bags")
+    ap.add_argument("--skip-pioneer", action="store_true", help="skip the Pioneer bags")
+    ap.add_argument("--only", choices=ONLY, help="run only this part: heldout (the RSS bags with all-bags and "
+                    "held-out calibration, a few minutes) or pioneer (the three Pioneer bags)")
     ap.add_argument("--duration", type=float, help="truncate the simulated trials to this many seconds")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--motion-sweep", nargs="*", type=float, metavar="SCALE",
@@ -147,6 +346,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.only is not None:  # one part alone
+        args.skip_sim = True
+        args.skip_real = args.only != "heldout"
+        args.skip_heldout = args.only != "heldout"
+        args.skip_pioneer = args.only != "pioneer"
+        args.motion_sweep = None
     overrides = {"random_seed": args.seed, **dict(args.overrides)}
     if args.particles is not None:
         overrides["num_particles"] = args.particles
@@ -162,7 +367,8 @@ def main(argv=None) -> int:
         return 1
     sim_params, real_params = config_dir() / "params.yaml", config_dir() / "real_params.yaml"
 
-    sim_jobs, real_jobs, sweep_jobs = [], [], []
+    sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs = [], [], [], [], []
+    folds, calibrated = {}, {}
     if not args.skip_sim:
         names = list(REPORT_TRIALS) + (["loop_noise0.3_biased"] if args.loop else [])
         for name in names:
@@ -183,6 +389,19 @@ def main(argv=None) -> int:
             real_jobs.append({"label": name, "bag": str(path), "map": rb.map, "params_file": str(real_params),
                               "overrides": overrides, "initial_pose": rb.start, "scan_topic": rb.scan_topic,
                               "odom_topic": rb.odom_topic, "out": str(out / name)})
+        if not args.skip_heldout:
+            print(f"calibrating {', '.join(REAL_BAGS)} (localization-calibrate, each once) for the held-out folds ...",
+                  file=sys.stderr)
+            try:
+                calibrated = calibrate_all(REAL_BAGS, args.jobs)
+            except RuntimeError as exc:
+                print(f"{PROG}: error: {exc}", file=sys.stderr)
+                return 1
+            folds = heldout_folds(REAL_BAGS, calibrated.__getitem__)
+            for job in real_jobs:
+                fold = {k: v for k, v in folds[job["label"]].items() if k != "calibrated_on"}
+                heldout_jobs.append({**job, "overrides": {**overrides, **fold},
+                                     "out": str(out / "heldout" / job["label"]), "plots": False})
         if args.motion_sweep is not None:
             scales = args.motion_sweep or [0.25, 0.5, 1.0, 2.0]
             base = Parameters.from_yaml(real_params)
@@ -192,14 +411,28 @@ def main(argv=None) -> int:
                 for job in real_jobs:
                     sweep_jobs.append({**job, "overrides": ov, "out": None, "scale": s, "plots": False})
 
+    if not args.skip_pioneer:
+        for name, rb in PIONEER_BAGS.items():
+            # the bag's own stamp convention (lgfloor2 stamps the first beam; pioneer_params.yaml says last_beam)
+            pioneer_jobs.append({"label": name, "bag": str(real_bag_path(name)), "map": rb.map,
+                                 "params_file": str(config_dir() / rb.params),
+                                 "overrides": {**overrides, "scan_stamp": rb.scan_stamp}, "initial_pose": rb.start,
+                                 "force_global": rb.start is None, "scan_topic": rb.scan_topic,
+                                 "odom_topic": rb.odom_topic, "out": str(out / name), "pioneer": True})
+
     t0 = time.perf_counter()
-    print(f"replaying {len(sim_jobs)} simulated trials and {len(real_jobs)} real bags "
-          f"({len(sweep_jobs)} sweep runs) with {args.jobs} worker(s) ...", file=sys.stderr)
-    results = _run_all(sim_jobs + real_jobs + sweep_jobs, args.jobs)
-    fast_res = [r for r in results[:len(sim_jobs)] if r["job"].get("fast")]
-    sim_res = [r for r in results[:len(sim_jobs)] if not r["job"].get("fast")]
-    real_res = results[len(sim_jobs):len(sim_jobs) + len(real_jobs)]
-    sweep_res = results[len(sim_jobs) + len(real_jobs):]
+    print(f"replaying {len(sim_jobs)} simulated trials, {len(real_jobs)} real bags, {len(heldout_jobs)} held-out "
+          f"replays, {len(pioneer_jobs)} Pioneer bags ({len(sweep_jobs)} sweep runs) with {args.jobs} worker(s) ...",
+          file=sys.stderr)
+    groups = [sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs]
+    results = _run_all([j for g in groups for j in g], args.jobs)
+    split, k = [], 0
+    for g in groups:
+        split.append(results[k:k + len(g)])
+        k += len(g)
+    sim_all, real_res, sweep_res, heldout_res, pioneer_res = split
+    fast_res = [r for r in sim_all if r["job"].get("fast")]
+    sim_res = [r for r in sim_all if not r["job"].get("fast")]
 
     n = overrides.get("num_particles", Parameters().num_particles)
     if sim_res:
@@ -227,9 +460,33 @@ def main(argv=None) -> int:
             ok = [v for v in vals if v is not None]
             print(f"{s:>6.2f} " + " ".join(f"{_f(v):>6}" for v in vals)
                   + f" {_f(sum(ok) / len(ok) if ok else None):>6}")
+    if heldout_res:
+        print("\nCalibration of each RSS 2022 bag (localization-calibrate) and the held-out folds: each bag's "
+              "odom_time_offset, odom_speed_scale, lidar_scale_to_map_scale = the mean over the other two")
+        print(calibration_table(calibrated, folds))
+        print(f"\nRSS 2022 bags vs the yardstick (scan-to-map reference track), error in metres; {n} particles, "
+              f"seed {args.seed}, from the approximate start poses")
+        print("all-bags parameters (config/real_params.yaml, calibrated on all three bags, this one included):")
+        print(yardstick_table(real_res))
+        print("HELD-OUT (odometry timing, speed scale and range scale calibrated on the other two bags only; "
+              "the rest from real_params.yaml):")
+        print(yardstick_table(heldout_res))
+    if pioneer_res:
+        print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "
+              f"first time from which the estimate stays within {CONVERGED_M} m of the yardstick's confident poses "
+              f"(or, without a confident pose in the first {EARLY_REFERENCE_S:.0f} s, the first agreement >= "
+              f"{HEALTHY_AGREEMENT}); recov = global re-spreads; agreement = median scan-map agreement where the "
+              "yardstick is confident; ref med = median error vs the yardstick there (m); disagree = share of scans "
+              "after which Localizer.status said the scans disagree with the map; health< = share of sensor "
+              "updates with health below health_lost_floor")
+        print(pioneer_table(pioneer_res))
     out.mkdir(parents=True, exist_ok=True)
-    summary = {r["job"]["label"] + (f"@{r['job']['scale']}" if "scale" in r["job"] else ""):
+    summary = {r["job"]["label"] + (f"@{r['job']['scale']}" if "scale" in r["job"] else "")
+               + ("@heldout" if r["job"] in heldout_jobs else ""):
                r.get("metrics", {"error": r.get("error")}) for r in results}
+    if folds:
+        summary["heldout_folds"] = folds
+        summary["calibration"] = calibrated
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"\nplots and metrics: {out}/<trial or bag>/(trajectory.png, error.png, metrics.json, poses.csv); "
           f"summary: {out / 'summary.json'}  [{time.perf_counter() - t0:.0f} s]")
