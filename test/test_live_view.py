@@ -55,7 +55,7 @@ async def _client(port: int, want: set, seconds: float = 5.0) -> tuple[dict, dic
     """Connect, read the advertisements, subscribe to everything, count messages per topic until
     each topic in ``want`` has one (or ``seconds`` pass). Returns (channels by topic, counts,
     negotiated subprotocol)."""
-    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws:
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
         channels: dict = {}
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline and not set(TOPICS.values()) <= set(channels):
@@ -190,3 +190,19 @@ def test_replay_foxglove_serves_the_run_and_keeps_the_result(monkeypatch, tmp_pa
                       "--foxglove", "0", "--rate", "0", "--no-plots", "--quiet", "--out", str(tmp_path / "out")])
     assert rc == 0 and held["port"] > 0
     assert {"/map", "/pf/pose", "/pf/particles", "/pf/track", "/reference/track", "/tf"} <= held["kept"]
+
+
+def test_the_node_serves_the_live_view_with_foxglove_port(runner):
+    """foxglove_port 0: the node starts the live view on a free loopback port; a client sees its channels
+    and gets the map the node received."""
+    import node_harness as h
+    r = runner(foxglove_port=0)
+    view = r.node.live_view
+    assert view is not None and view.host == "127.0.0.1" and view.port > 0
+    r.send_map(h.map_msg("basement_fixed"))
+    deadline = time.monotonic() + 60.0
+    while not r.node.localizer.has_map and time.monotonic() < deadline:
+        r.settle(0.2)
+    channels, got, _ = asyncio.run(_client(view.port, {"/map"}))
+    assert set(TOPICS.values()) <= set(channels)
+    assert got["counts"].get("/map", 0) >= 1

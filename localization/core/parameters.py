@@ -227,6 +227,11 @@ PARAMETERS = [
     Param("sensor_update_thread", False, "run the sensor update on its own thread (a short FIFO of scans) instead "
           "of in the scan callback: odometry poses keep flowing during an update, at the cost of a GIL hand-over "
           "per scan (see docs/node.md, Threading)", lambda v: isinstance(v, bool), "true or false"),
+    Param("foxglove_port", -1, "serve a live view (map, scan, particles, estimate, TF) over the Foxglove WebSocket "
+          "protocol on this port (needs foxglove-sdk); 0: any free port; -1: off",
+          lambda v: isinstance(v, int) and -1 <= v <= 65535, "an integer in [-1, 65535]"),
+    Param("foxglove_host", "127.0.0.1", "address the live view listens on (127.0.0.1: this machine only)",
+          lambda v: isinstance(v, str) and len(v) > 0, "an address"),
     Param("diagnostics_period", 1.0, "period (s) of /diagnostics (diagnostic_msgs/DiagnosticArray)", _positive, "> 0"),
     Param("persist_pose", False, "write the estimate and its covariance to persist_pose_file every "
           "persist_pose_period s, and start from it when no initial pose is set", lambda v: isinstance(v, bool),

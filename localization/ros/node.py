@@ -141,6 +141,7 @@ class LocalizationMixin:
             raise
         self.counts = Counter()  # messages handled per input (diagnostics, tests)
         self.localizer = None
+        self.live_view = None
         self.watchdog = None
         self.scan_worker = self.map_worker = None
         self._pf_subs, self._pf_timers = [], []
@@ -183,8 +184,24 @@ class LocalizationMixin:
             self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global),
             self.create_service(Empty, "request_nomotion_update", self.on_request_nomotion_update),
         ]
+        self.live_view = self._start_live_view()
         self._initial_pose_at_start()
         self._configured = True
+
+    def _start_live_view(self):
+        """The Foxglove live view when foxglove_port >= 0 (a browser-only way to watch the filter)."""
+        p = self.params
+        if p.foxglove_port < 0:
+            return None
+        from localization.ros.live_view import LiveView, LiveViewError
+        try:
+            view = LiveView(port=p.foxglove_port, host=p.foxglove_host, map_frame=p.map_frame,
+                            base_frame=p.particle_filter_frame)
+        except LiveViewError as exc:
+            self.get_logger().error(f"live view not started: {exc}")
+            return None
+        self.get_logger().info(f"live view: Foxglove WebSocket on ws://{view.host}:{view.port}")
+        return view
 
     def _activate(self) -> None:
         p = self.params
@@ -228,6 +245,9 @@ class LocalizationMixin:
         for worker in (self.map_worker, self.scan_worker):
             if worker is not None:
                 worker.stop()  # no sensor update publishes through a destroyed node
+        if getattr(self, "live_view", None) is not None:
+            self.live_view.close()
+            self.live_view = None
         if self._configured:
             self._report_worker_drops()
             w = self.watchdog
@@ -330,6 +350,8 @@ class LocalizationMixin:
             self.counts["map"] += 1
             return
         self.watchdog.map_ready(time.monotonic())
+        if self.live_view is not None:
+            self.live_view.set_map(occupancy_map)
         source = getattr(caster, "table_source", None)
         how = {"built": "built", "disk": "loaded from the cache", "memory": "shared with a map in memory"}.get(
             source, "")
@@ -445,6 +467,8 @@ class LocalizationMixin:
                 while len(self._scan_times) > SCAN_TIMES_KEPT:
                     del self._scan_times[next(iter(self._scan_times))]
         self.localizer.on_scan(scan)  # not ready: it says why (throttled)
+        if self.live_view is not None:
+            self.live_view(scan, self.localizer)
         if math.isfinite(scan.stamp):
             self._last_data_stamp = scan.stamp
         self._publish_corrections()
