@@ -195,3 +195,14 @@ def test_compiled_kernel_equals_the_numpy_reference(monkeypatch, robot, odometry
     monkeypatch.setattr(motion_module, "_move_kernel", None)
     plain = MotionModel(rng=3, params=car_noise(robot)).evaluate(particles, odometry)
     assert np.allclose(compiled, plain, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("piece", [(0.3, 0.0, 0.0), (0.2, 0.05, 0.4), (0.0, 0.0, 0.7), (0.1, -0.2, -1.2),
+                                   (1e-8, 0.0, 1e-9)])
+def test_covariance_kernel_equals_its_numpy_reference(piece):
+    if motion_module._covariance_kernel is None:
+        pytest.skip("numba missing")  # pragma: no cover - numba is pinned
+    vx, vy, w = piece
+    args = (vx, vy, w, 0.3, 0.02, 0.01, 0.005)
+    got = motion_module._covariance_kernel(*args, motion_module._GL_TAU, motion_module._GL_W)
+    np.testing.assert_allclose(got, motion_module.covariance_reference(*args), rtol=1e-12, atol=1e-18)

@@ -223,17 +223,10 @@ class MotionModel:
         qc = self.a_lateral ** 2 * s + self.a_rot_to_trans ** 2 * r + self.floor_xy ** 2 * amount
         qt = self.a_trans_to_rot ** 2 * s + self.a_rot ** 2 * r + self.floor_theta ** 2 * amount
         beta = math.atan2(vy, vx) if self.robot.travel_frame and s >= self.still_trans else 0.0
-        arc = integrate_twists(vx, vy, w, np.append(_GL_TAU, 1.0))  # p(τ) at the nodes, then p(1)
-        ang = w * _GL_TAU + beta
-        phi = np.zeros((_GL_TAU.size, 3, 3))
-        phi[:, 0, 0] = phi[:, 1, 1] = np.cos(ang)
-        phi[:, 1, 0] = np.sin(ang)
-        phi[:, 0, 1] = -phi[:, 1, 0]
-        phi[:, 0, 2] = -(arc[-1, 1] - arc[:-1, 1])
-        phi[:, 1, 2] = arc[-1, 0] - arc[:-1, 0]
-        phi[:, 2, 2] = 1.0
-        cov = np.einsum("n,nij,j,nkj->ik", _GL_W, phi, np.array([qa, qc, qt]), phi)
-        return 0.5 * (cov + cov.T)
+        if _covariance_kernel is not None:  # the same integral, compiled (the numpy below is its reference)
+            return _covariance_kernel(vx, vy, w, beta, qa, qc, qt, _GL_TAU, _GL_W)
+        return covariance_reference(vx, vy, w, beta, qa, qc, qt)
+
 
     def noise_covariance(self, odometry) -> np.ndarray:
         """Σ(u) (3, 3): covariance of the robot-frame noise ε for one odometry piece [dx, dy, dθ]."""
@@ -267,6 +260,21 @@ class MotionModel:
         else:
             move_reference(particles, u, noise, factor, out)
         return out
+
+
+def covariance_reference(vx: float, vy: float, w: float, beta: float, qa: float, qc: float, qt: float) -> np.ndarray:
+    """Σ(u) of the module docstring by 4-point Gauss–Legendre, in numpy (the kernel's reference)."""
+    arc = integrate_twists(vx, vy, w, np.append(_GL_TAU, 1.0))  # p(τ) at the nodes, then p(1)
+    ang = w * _GL_TAU + beta
+    phi = np.zeros((_GL_TAU.size, 3, 3))
+    phi[:, 0, 0] = phi[:, 1, 1] = np.cos(ang)
+    phi[:, 1, 0] = np.sin(ang)
+    phi[:, 0, 1] = -phi[:, 1, 0]
+    phi[:, 0, 2] = -(arc[-1, 1] - arc[:-1, 1])
+    phi[:, 1, 2] = arc[-1, 0] - arc[:-1, 0]
+    phi[:, 2, 2] = 1.0
+    cov = np.einsum("n,nij,j,nkj->ik", _GL_W, phi, np.array([qa, qc, qt]), phi)
+    return 0.5 * (cov + cov.T)
 
 
 _NO_NOISE = np.zeros((0, 3))
@@ -318,5 +326,38 @@ if njit is not None:
             out[i, 0] = x
             out[i, 1] = y
             out[i, 2] = w
+    @njit(cache=True, nogil=True)
+    def _covariance_kernel(vx, vy, w, beta, qa, qc, qt, tau, weights):  # pragma: no cover - compiled
+        """As ``covariance_reference``: Σ = Σ_n w_n Φ(τ_n) diag(qa, qc, qt) Φ(τ_n)ᵀ."""
+        def arc(t):  # geometry.integrate_twist(vx, vy, w, t)
+            dth = w * t
+            if abs(dth) < 1e-6:
+                a = t * (1.0 - dth * dth / 6.0)
+                b = t * 0.5 * dth
+            else:
+                a = math.sin(dth) / w
+                b = (1.0 - math.cos(dth)) / w
+            return vx * a - vy * b, vx * b + vy * a
+        ex, ey = arc(1.0)
+        cov = np.zeros((3, 3))
+        phi = np.zeros((3, 3))
+        for n in range(tau.size):
+            px, py = arc(tau[n])
+            ang = w * tau[n] + beta
+            c, s = math.cos(ang), math.sin(ang)
+            phi[0, 0], phi[0, 1], phi[0, 2] = c, -s, -(ey - py)
+            phi[1, 0], phi[1, 1], phi[1, 2] = s, c, ex - px
+            phi[2, 0], phi[2, 1], phi[2, 2] = 0.0, 0.0, 1.0
+            for i in range(3):
+                for k in range(3):
+                    cov[i, k] += weights[n] * (phi[i, 0] * qa * phi[k, 0] + phi[i, 1] * qc * phi[k, 1]
+                                               + phi[i, 2] * qt * phi[k, 2])
+        for i in range(3):
+            for k in range(i + 1, 3):
+                m = 0.5 * (cov[i, k] + cov[k, i])
+                cov[i, k] = m
+                cov[k, i] = m
+        return cov
 else:  # pragma: no cover
     _move_kernel = None
+    _covariance_kernel = None
