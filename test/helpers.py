@@ -27,3 +27,18 @@ def occupancy_grid_msg(occupancy_map: OccupancyMap):
     info = SimpleNamespace(width=occupancy_map.width, height=occupancy_map.height, resolution=occupancy_map.resolution,
                            origin=SimpleNamespace(position=SimpleNamespace(x=x, y=y, z=0.0), orientation=q))
     return SimpleNamespace(header=SimpleNamespace(frame_id="map"), info=info, data=occupancy_map.data.ravel().tolist())
+
+
+def localize_recording(rec, params, occupancy_map):
+    """A simulated recording through a Localizer from its /initialpose: (FeedLog, truth comparison)."""
+    from localization.core.localizer import Localizer
+    from localization.eval.feed import Feeder, recording_events
+    from localization.eval.metrics import compare_to_truth
+
+    loc = Localizer(params)
+    loc.set_map(occupancy_map)
+    loc.set_initial_pose(rec.initial_pose, stamp=-0.001)
+    feeder = Feeder(loc)
+    feeder.feed(recording_events(rec))
+    t, poses = feeder.log.estimates()
+    return feeder.log, compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)

@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from helpers import corridor_map
+from helpers import corridor_map, localize_recording
 
 from localization.core.geometry import compose, integrate_twist
 from localization.core.localizer import Localizer
@@ -15,8 +15,7 @@ from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.eval.datasets import trial_config
-from localization.eval.feed import Feeder, recording_events
-from localization.eval.metrics import compare_to_truth
+from localization.eval.feed import Feeder
 from localization.sim import recorder as S
 
 _STATA = {}
@@ -40,14 +39,8 @@ def _drive(latency: float):
 
 def _localize(rec, seed: int, **params):
     p = Parameters.from_yaml(config_dir() / "params.yaml", num_particles=500, random_seed=seed, **params)
-    loc = Localizer(p)
-    loc.set_map(load_stata())
-    loc.set_initial_pose(rec.initial_pose, stamp=-0.001)
-    feeder = Feeder(loc)
-    feeder.feed(recording_events(rec))
-    t, poses = feeder.log.estimates()
-    err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
-    return feeder.log, float(err.ct_error[err.t > 1.0].mean())
+    log, err = localize_recording(rec, p, load_stata())
+    return log, float(err.ct_error[err.t > 1.0].mean())
 
 
 SEEDS = (1, 2, 3)  # the mean error over a few filter seeds (one run's varies by ~10 %)

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from helpers import corridor_map
+from helpers import corridor_map, localize_recording
 
 import localization.sim as S
 from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
@@ -23,8 +23,6 @@ from localization.core.scan import ScanData
 from localization.core.scan_step import deskew_offsets
 from localization.core.sensors.beam import BeamModel
 from localization.eval.datasets import trial_config
-from localization.eval.feed import Feeder, recording_events
-from localization.eval.metrics import compare_to_truth
 from localization.eval.reference import track_errors
 
 
@@ -143,13 +141,8 @@ def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
 
 
 def _run(rec, params: Parameters):
-    loc = Localizer(params)
-    loc.set_map(load_stata())
-    loc.set_initial_pose(rec.initial_pose, stamp=-0.001)
-    feeder = Feeder(loc)
-    feeder.feed(recording_events(rec))
-    t, poses = feeder.log.estimates()
-    err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
+    log, err = localize_recording(rec, params, load_stata())
+    t, poses = log.estimates()
     late = err.t > 2.0  # after the convergence from the initial offset
     truth = track_errors(t, poses, rec.truth_t, rec.truth_poses)
     return float(err.ct_error[late].mean()), float(truth.along[truth.t > 2.0].mean())

@@ -25,10 +25,26 @@ from __future__ import annotations
 
 import math
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+
+
+class LaserMount:
+    """The laser pose in base_link, kept in a model's frozen ``params`` (laser_offset_x/_y/_yaw): read
+    as a copy, changed only through ``set_laser_offset`` (both models share this)."""
+
+    @property
+    def laser_offset(self) -> np.ndarray:
+        """(3,) the laser pose (x, y, yaw) in base_link (a copy)."""
+        p = self.params
+        return np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
+
+    def set_laser_offset(self, offset) -> None:
+        """Use the laser pose ``offset`` (x m, y m, yaw rad) in base_link."""
+        x, y, yaw = (float(v) for v in np.asarray(offset, dtype=float).reshape(3))
+        self.params = replace(self.params, laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw)
 
 
 @dataclass(frozen=True)

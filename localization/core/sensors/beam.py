@@ -59,7 +59,7 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
 from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
-from localization.core.sensors import Preparation, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
@@ -102,7 +102,7 @@ class BeamModelParams:
 _PARAM_ATTRIBUTES = frozenset(f.name for f in fields(BeamModelParams)) - {"ray_caster"}
 
 
-class BeamModel:
+class BeamModel(LaserMount):
     """The beam model (the course's ``SensorModel``). ``BeamModel(**overrides)`` or
     ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets.
 
@@ -142,16 +142,7 @@ class BeamModel:
         return self.params.ray_caster
 
     # ------------------------------------------------------------------ the laser
-    @property
-    def laser_offset(self) -> np.ndarray:
-        """(3,) the laser pose (x, y, yaw) in base_link (a copy)."""
-        p = self.params
-        return np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
-
-    def set_laser_offset(self, offset) -> None:
-        """Use the laser pose ``offset`` (x m, y m, yaw rad) in base_link."""
-        x, y, yaw = (float(v) for v in np.asarray(offset, dtype=float).reshape(3))
-        self.params = replace(self.params, laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw)
+    # the laser pose: LaserMount (laser_offset, set_laser_offset)
 
     # ------------------------------------------------------------------ the table
     @property

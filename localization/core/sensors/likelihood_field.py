@@ -64,7 +64,7 @@ import numpy as np
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast.kernels import HAVE_NUMBA
-from localization.core.sensors import Preparation, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
@@ -100,7 +100,7 @@ class LikelihoodFieldParams:
         return cls(**{f.name: params[f.name] for f in fields(cls)})
 
 
-class LikelihoodFieldModel:
+class LikelihoodFieldModel(LaserMount):
     """``LikelihoodFieldModel(**overrides)`` or ``LikelihoodFieldModel(params)``; a
     ``sensors.SensorModel``, as ``BeamModel``."""
 
@@ -130,16 +130,7 @@ class LikelihoodFieldModel:
             self.set_map(occupancy_map)
 
     # ------------------------------------------------------------------ the laser
-    @property
-    def laser_offset(self) -> np.ndarray:
-        """(3,) the laser pose (x, y, yaw) in base_link (a copy)."""
-        p = self.params
-        return np.array([p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw], dtype=float)
-
-    def set_laser_offset(self, offset) -> None:
-        """Use the laser pose ``offset`` (x m, y m, yaw rad) in base_link."""
-        x, y, yaw = (float(v) for v in np.asarray(offset, dtype=float).reshape(3))
-        self.params = replace(self.params, laser_offset_x=x, laser_offset_y=y, laser_offset_yaw=yaw)
+    # the laser pose: LaserMount (laser_offset, set_laser_offset)
 
     # ------------------------------------------------------------------ the field
     @property
