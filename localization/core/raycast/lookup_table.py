@@ -311,70 +311,75 @@ class LookupTableRayCaster(RayCaster):
         return out
 
     def cast_numpy(self, sensor_poses, angles, offsets=None) -> np.ndarray:
-        """``cast`` in plain numpy: the reference for the compiled kernel, the fallback without numba.
-        With ``refine`` the beams are cast by ``ExactRayCaster`` instead (what refining approaches).
-        ``offsets`` (B, 2): each beam's origin moved by (dx, dy) metres in the sensor frame (a
-        deskewed sweep), folded into the offset from the cell centre as the fused beam kernel does."""
-        poses = np.atleast_2d(np.asarray(sensor_poses, dtype=float))
-        angles = np.asarray(angles, dtype=float).ravel()
-        k = self.theta_bins
-        inv_units, max_cells, step, cos_step, sin_step = self._consts[:5]
-        with np.errstate(invalid="ignore"):
-            g = self.map.world_to_grid_pose(poses)
-        finite = np.all(np.isfinite(g), axis=1)
-        g[~finite] = 0.0  # a non-finite pose sees 0, as in the kernel
-        col = np.floor(g[:, 0]).astype(np.int64)
-        row = np.floor(g[:, 1]).astype(np.int64)
-        inside = self.map.in_bounds(np.stack([col, row], axis=-1)) & finite
-        cell = np.full(len(poses), -1, dtype=np.int64)
-        cell[inside] = self.index[row[inside], col[inside]]
-        ok = cell >= 0
-        f0 = g[:, 2] * (k / (2.0 * np.pi))
-        f0 -= k * np.floor(f0 / k)
-        f0 = np.where(f0 >= k, f0 - k, f0)
-        f = f0[:, None] + self._beams(angles)[0][None, :]
-        f = np.where(f >= k, f - k, f)
-        k0 = np.minimum(f.astype(np.int64), k - 1)
-        k1 = np.where(k0 + 1 >= k, 0, k0 + 1)
-        rows = np.where(ok, cell, 0)[:, None]
-        q0 = self.table[rows, k0].astype(float)
-        q1 = self.table[rows, k1].astype(float)
-        ex, ey = g[:, 0] - (col + 0.5), g[:, 1] - (row + 0.5)
-        c, s = np.cos(g[:, 2]), np.sin(g[:, 2])
-        u, v = (c * ex + s * ey)[:, None], (c * ey - s * ex)[:, None]
-        if offsets is not None:
-            offsets = np.asarray(offsets, dtype=float).reshape(-1, 2) / self.map.resolution
-            u, v = u + offsets[None, :, 0], v + offsets[None, :, 1]
-        _, beam_c, beam_s = self._beams(angles)
-        along, perp = u * beam_c + v * beam_s, v * beam_c - u * beam_s
-        a = f - np.floor(f)
-        nearest = np.where(a < 0.5, q0, q1) * inv_units - along
-        if self.interpolation == "nearest":
-            r = nearest
-        elif self.interpolation == "linear":
-            r = ((1.0 - a) * q0 + a * q1) * inv_units - along
-        else:
-            r0, r1 = q0 * inv_units, q1 * inv_units
-            al = a * step
-            al2 = al * al  # the kernel's Taylor series of sin/cos
-            sa = al * (1.0 - al2 / 6.0 * (1.0 - al2 / 20.0))
-            ca = 1.0 - al2 * 0.5 * (1.0 - al2 / 12.0 * (1.0 - al2 / 30.0))
-            dxp, dyp = ca * along - sa * perp, ca * perp + sa * along
-            e_x, e_y = r1 * cos_step - r0, r1 * sin_step
-            den = ca * e_y - sa * e_x
-            with np.errstate(divide="ignore", invalid="ignore"):
-                line = ((r0 - dxp) * e_y + dyp * e_x) / den
-            line = np.clip(line, np.minimum(r0, r1) - 1.0, np.maximum(r0, r1) + 1.0)
-            fallback = (q0 >= TABLE_MAX_UNITS) | (q1 >= TABLE_MAX_UNITS) | ~(den > 1e-9)
-            r = np.where(fallback, nearest, line)
-        r = np.clip(r, 0.0, max_cells) * self.map.resolution
-        if self.refine > 0 and ok.any() and offsets is None:
-            r[ok] = RayCaster.cast(self, poses[ok], angles)  # through _cast_grid: the exact marcher
-        elif self.refine > 0 and ok.any():  # each beam from its own origin
-            gc, gs = np.cos(poses[ok, 2])[:, None], np.sin(poses[ok, 2])[:, None]
-            dx, dy = offsets[None, :, 0] * self.map.resolution, offsets[None, :, 1] * self.map.resolution
-            origins = np.stack([poses[ok, 0:1] + gc * dx - gs * dy, poses[ok, 1:2] + gs * dx + gc * dy,
-                                np.broadcast_to(poses[ok, 2:3], (int(ok.sum()), angles.size))], axis=-1)
-            r[ok] = self.cast_rays(origins.reshape(-1, 3), np.tile(angles, int(ok.sum()))).reshape(-1, angles.size)
-        r[~ok] = 0.0
-        return r
+        """``cast`` in plain numpy (``table_cast_numpy``): the compiled kernel's reference."""
+        return table_cast_numpy(self, sensor_poses, angles, offsets)
+
+
+def table_cast_numpy(self: "LookupTableRayCaster", sensor_poses, angles, offsets=None) -> np.ndarray:
+    """``cast`` in plain numpy: the reference for the compiled kernel, the fallback without numba.
+    With ``refine`` the beams are cast by ``ExactRayCaster`` instead (what refining approaches).
+    ``offsets`` (B, 2): each beam's origin moved by (dx, dy) metres in the sensor frame (a
+    deskewed sweep), folded into the offset from the cell centre as the fused beam kernel does."""
+    poses = np.atleast_2d(np.asarray(sensor_poses, dtype=float))
+    angles = np.asarray(angles, dtype=float).ravel()
+    k = self.theta_bins
+    inv_units, max_cells, step, cos_step, sin_step = self._consts[:5]
+    with np.errstate(invalid="ignore"):
+        g = self.map.world_to_grid_pose(poses)
+    finite = np.all(np.isfinite(g), axis=1)
+    g[~finite] = 0.0  # a non-finite pose sees 0, as in the kernel
+    col = np.floor(g[:, 0]).astype(np.int64)
+    row = np.floor(g[:, 1]).astype(np.int64)
+    inside = self.map.in_bounds(np.stack([col, row], axis=-1)) & finite
+    cell = np.full(len(poses), -1, dtype=np.int64)
+    cell[inside] = self.index[row[inside], col[inside]]
+    ok = cell >= 0
+    f0 = g[:, 2] * (k / (2.0 * np.pi))
+    f0 -= k * np.floor(f0 / k)
+    f0 = np.where(f0 >= k, f0 - k, f0)
+    f = f0[:, None] + self._beams(angles)[0][None, :]
+    f = np.where(f >= k, f - k, f)
+    k0 = np.minimum(f.astype(np.int64), k - 1)
+    k1 = np.where(k0 + 1 >= k, 0, k0 + 1)
+    rows = np.where(ok, cell, 0)[:, None]
+    q0 = self.table[rows, k0].astype(float)
+    q1 = self.table[rows, k1].astype(float)
+    ex, ey = g[:, 0] - (col + 0.5), g[:, 1] - (row + 0.5)
+    c, s = np.cos(g[:, 2]), np.sin(g[:, 2])
+    u, v = (c * ex + s * ey)[:, None], (c * ey - s * ex)[:, None]
+    if offsets is not None:
+        offsets = np.asarray(offsets, dtype=float).reshape(-1, 2) / self.map.resolution
+        u, v = u + offsets[None, :, 0], v + offsets[None, :, 1]
+    _, beam_c, beam_s = self._beams(angles)
+    along, perp = u * beam_c + v * beam_s, v * beam_c - u * beam_s
+    a = f - np.floor(f)
+    nearest = np.where(a < 0.5, q0, q1) * inv_units - along
+    if self.interpolation == "nearest":
+        r = nearest
+    elif self.interpolation == "linear":
+        r = ((1.0 - a) * q0 + a * q1) * inv_units - along
+    else:
+        r0, r1 = q0 * inv_units, q1 * inv_units
+        al = a * step
+        al2 = al * al  # the kernel's Taylor series of sin/cos
+        sa = al * (1.0 - al2 / 6.0 * (1.0 - al2 / 20.0))
+        ca = 1.0 - al2 * 0.5 * (1.0 - al2 / 12.0 * (1.0 - al2 / 30.0))
+        dxp, dyp = ca * along - sa * perp, ca * perp + sa * along
+        e_x, e_y = r1 * cos_step - r0, r1 * sin_step
+        den = ca * e_y - sa * e_x
+        with np.errstate(divide="ignore", invalid="ignore"):
+            line = ((r0 - dxp) * e_y + dyp * e_x) / den
+        line = np.clip(line, np.minimum(r0, r1) - 1.0, np.maximum(r0, r1) + 1.0)
+        fallback = (q0 >= TABLE_MAX_UNITS) | (q1 >= TABLE_MAX_UNITS) | ~(den > 1e-9)
+        r = np.where(fallback, nearest, line)
+    r = np.clip(r, 0.0, max_cells) * self.map.resolution
+    if self.refine > 0 and ok.any() and offsets is None:
+        r[ok] = RayCaster.cast(self, poses[ok], angles)  # through _cast_grid: the exact marcher
+    elif self.refine > 0 and ok.any():  # each beam from its own origin
+        gc, gs = np.cos(poses[ok, 2])[:, None], np.sin(poses[ok, 2])[:, None]
+        dx, dy = offsets[None, :, 0] * self.map.resolution, offsets[None, :, 1] * self.map.resolution
+        origins = np.stack([poses[ok, 0:1] + gc * dx - gs * dy, poses[ok, 1:2] + gs * dx + gc * dy,
+                            np.broadcast_to(poses[ok, 2:3], (int(ok.sum()), angles.size))], axis=-1)
+        r[ok] = self.cast_rays(origins.reshape(-1, 3), np.tile(angles, int(ok.sum()))).reshape(-1, angles.size)
+    r[~ok] = 0.0
+    return r
