@@ -23,6 +23,7 @@ lost; one bad stamp between good ones is skipped). Not thread safe: the localize
 """
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from dataclasses import dataclass
@@ -52,12 +53,15 @@ class OdometryLimits:
     max_speed: float = 20.0  # m/s: odom_max_speed
     max_yaw_rate: float = 20.0  # rad/s: odom_max_yaw_rate
     extrapolation: float = 0.5  # s: scan_max_wait (how far a late scan may be carried past the odometry)
+    keeps_sideways: bool = True  # False (a differential base): a reported sideways speed vy is taken as 0
 
     @classmethod
     def from_parameters(cls, p) -> "OdometryLimits":
+        from localization.core.motion import robot_model
         return cls(time_offset=p.odom_time_offset, speed_scale=p.odom_speed_scale,
                    yaw_rate_scale=p.odom_yaw_rate_scale, yaw_rate_bias=p.odom_yaw_rate_bias, max_gap=p.odom_max_gap,
-                   max_speed=p.odom_max_speed, max_yaw_rate=p.odom_max_yaw_rate, extrapolation=p.scan_max_wait)
+                   max_speed=p.odom_max_speed, max_yaw_rate=p.odom_max_yaw_rate, extrapolation=p.scan_max_wait,
+                   keeps_sideways=robot_model(p.robot_model_type).keeps_sideways)
 
 
     def carry(self, last: PoseEstimate | None, twist: TwistData) -> PoseEstimate | None:
@@ -91,6 +95,7 @@ class OdometryTimeline:
         self._last_stamp: float | None = None  # odometry clock: the newest accepted message's own stamp
         self._before_jump: float | None = None  # the stamp before a jump (was it one bad stamp?)
         self.anchor: PoseEstimate | None = None  # the latest corrected estimate (scan clock)
+        self._said_sideways = False
 
     # ------------------------------------------------------------------ odometry in
     def add(self, twist: TwistData) -> OdometryVerdict:
@@ -122,6 +127,13 @@ class OdometryTimeline:
                 restart = self._buffer.add(TwistData(last, 0.0, 0.0, 0.0))
             if carried is not None:  # the pose before the jump holds at the new history's start
                 self.anchor = PoseEstimate(stamp=restart, pose=carried.pose, covariance=carried.covariance)
+        if not lim.keeps_sideways and twist.vy != 0.0:  # a differential base cannot move sideways
+            if not self._said_sideways and abs(twist.vy) > 1e-3:
+                logging.getLogger("localization.motion").warning(
+                    "robot_model_type differential: the odometry reports sideways motion (vy %.3g m/s); a "
+                    "differential base cannot move sideways: vy is ignored (forced to 0)", twist.vy)
+                self._said_sideways = True
+            twist = TwistData(twist.stamp, twist.vx, 0.0, twist.wz, twist.frame_id)
         t = self._buffer.add(twist)
         return OdometryVerdict(True, time=t, restart=(t if restart is None else restart) if new_history else None)
 
