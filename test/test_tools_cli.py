@@ -86,7 +86,7 @@ def test_car_bag_without_params_gets_the_car_parameters(capsys):
 def test_calibrate_picks_parameters_and_topics_as_replay_does(monkeypatch, tmp_path, capsys):
     seen = {}
 
-    def fake_calibrate_bag(bag, occupancy_map, scan_topic, odom_topic, initial_pose, mount, log=None):
+    def fake_calibrate_bag(bag, occupancy_map, scan_topic, odom_topic, initial_pose, mount, log=None, **timing):
         seen.update(scan=scan_topic, odom=odom_topic, mount=mount)
         raise calibrate.CalibrationError("stop here")
     monkeypatch.setattr(calibrate, "calibrate_bag", fake_calibrate_bag)
