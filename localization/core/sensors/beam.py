@@ -102,6 +102,33 @@ class BeamModelParams:
 _PARAM_ATTRIBUTES = frozenset(f.name for f in fields(BeamModelParams)) - {"ray_caster"}
 
 
+def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
+    """The (k + 1, k + 1) table of the module docstring for z_max row k: rows z, columns d (table
+    cells of ``table_resolution`` metres), every column normalised."""
+    n = int(k) + 1
+    if n < 2:
+        raise ValueError(f"the table needs at least 2 rows, got {n}")
+    if not (p.sigma_hit > 0 and p.table_resolution > 0):
+        raise ValueError(f"sigma_hit ({p.sigma_hit}) and table_resolution ({p.table_resolution}) must be > 0")
+    sigma = p.sigma_hit / p.table_resolution  # table cells
+    z = np.arange(n, dtype=float)[:, None]  # rows: measured range
+    d = np.arange(n, dtype=float)[None, :]  # columns: expected range
+
+    p_hit = np.exp(-0.5 * ((z - d) / sigma) ** 2) / np.sqrt(2.0 * np.pi * sigma ** 2)
+    p_hit = p_hit / p_hit.sum(axis=0, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p_short = np.where((z <= d) & (d > 0), 2.0 / d * (1.0 - z / d), 0.0)
+    p_max = np.where(z == n - 1, 1.0, 0.0) * np.ones_like(d)
+    p_rand = np.full((n, n), 1.0 / (n - 1))
+
+    table = (p.alpha_hit * p_hit + p.alpha_short * p_short + p.alpha_max * p_max + p.alpha_rand * p_rand)
+    column_sums = table.sum(axis=0, keepdims=True)
+    if not np.any(column_sums > 0):
+        raise ValueError("sensor model alphas are all zero; at least one must be > 0")
+    # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
+    return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
+
+
 class BeamModel(LaserMount):
     """The beam model (the course's ``SensorModel``). ``BeamModel(**overrides)`` or
     ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets.
@@ -156,31 +183,8 @@ class BeamModel(LaserMount):
         return self.z_max * self.params.table_resolution
 
     def mixture_table(self, k: int) -> np.ndarray:
-        """The (k + 1, k + 1) table of the module docstring for z_max row k: rows z, columns d,
-        every column normalised."""
-        p = self.params
-        n = int(k) + 1
-        if n < 2:
-            raise ValueError(f"the table needs at least 2 rows, got {n}")
-        if not (p.sigma_hit > 0 and p.table_resolution > 0):
-            raise ValueError(f"sigma_hit ({p.sigma_hit}) and table_resolution ({p.table_resolution}) must be > 0")
-        sigma = p.sigma_hit / p.table_resolution  # table cells
-        z = np.arange(n, dtype=float)[:, None]  # rows: measured range
-        d = np.arange(n, dtype=float)[None, :]  # columns: expected range
-
-        p_hit = np.exp(-0.5 * ((z - d) / sigma) ** 2) / np.sqrt(2.0 * np.pi * sigma ** 2)
-        p_hit = p_hit / p_hit.sum(axis=0, keepdims=True)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            p_short = np.where((z <= d) & (d > 0), 2.0 / d * (1.0 - z / d), 0.0)
-        p_max = np.where(z == n - 1, 1.0, 0.0) * np.ones_like(d)
-        p_rand = np.full((n, n), 1.0 / (n - 1))
-
-        table = (p.alpha_hit * p_hit + p.alpha_short * p_short + p.alpha_max * p_max + p.alpha_rand * p_rand)
-        column_sums = table.sum(axis=0, keepdims=True)
-        if not np.any(column_sums > 0):
-            raise ValueError("sensor model alphas are all zero; at least one must be > 0")
-        # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
-        return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
+        """The (k + 1, k + 1) table for z_max row k (``beam_mixture_table``)."""
+        return beam_mixture_table(self.params, k)
 
     def precompute_sensor_model(self) -> np.ndarray:
         """(Re)build ``sensor_model_table`` (z_max = table_width − 1) from the current alphas,
