@@ -96,6 +96,7 @@ class OdometryTimeline:
         self._before_jump: float | None = None  # the stamp before a jump (was it one bad stamp?)
         self.anchor: PoseEstimate | None = None  # the latest corrected estimate (scan clock)
         self._said_sideways = False
+        self._memo = None  # (anchor, t, pose at t): the newest carried pose
 
     # ------------------------------------------------------------------ odometry in
     def add(self, twist: TwistData) -> OdometryVerdict:
@@ -191,7 +192,14 @@ class OdometryTimeline:
         t_from = self.usable(a.stamp)
         if t_from is None:
             return a
-        return PoseEstimate(stamp=t, pose=compose(a.pose, self.motion(t_from, t)), covariance=a.covariance)
+        start, base = t_from, a.pose
+        memo = self._memo  # the last pose carried forward from this anchor: go on from it, not from the anchor
+        if memo is not None and memo[0] is a and t_from <= memo[1] <= t:
+            start, base = memo[1], memo[2]
+        pose = compose(base, self.motion(start, t))
+        if t >= start:
+            self._memo = (a, t, pose)
+        return PoseEstimate(stamp=t, pose=pose, covariance=a.covariance)
 
     def trim(self, keep_from: float | None = None) -> None:
         """Forget odometry no longer needed (older than the anchor and ``keep_from``, minus a gap)."""
