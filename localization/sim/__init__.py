@@ -50,13 +50,14 @@ from localization.sim.config import (
     SimulationError,
     differential_trial,
 )
+from localization.sim.perturb import MapPerturbation, perturb_map
 from localization.sim.recorder import Recording, code_version, record, simulate, write_bag
 from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory, wheel_odometry
 from localization.sim.trajectory import Trajectory, clearance_at, clearance_grid, simulate_trajectory
 from localization.sim.vehicle import CarModel, DiffDriveModel, RouteFollower, TurnAndDriveFollower, densify
 
 __all__ = ["DIFFERENTIAL_ROUTE", "DIFFERENTIAL_START", "PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS",
-           "CarModel", "DiffDriveModel", "Lidar", "OdometryStream", "Recording", "RouteFollower", "SimConfig",
-           "SimulationError", "Trajectory", "TurnAndDriveFollower", "clearance_at", "clearance_grid", "code_version",
-           "densify", "differential_trial", "odometry_from_trajectory", "record", "simulate", "simulate_trajectory",
-           "wheel_odometry", "write_bag"]
+           "CarModel", "DiffDriveModel", "Lidar", "MapPerturbation", "OdometryStream", "Recording", "RouteFollower",
+           "SimConfig", "SimulationError", "Trajectory", "TurnAndDriveFollower", "clearance_at", "clearance_grid",
+           "code_version", "densify", "differential_trial", "odometry_from_trajectory", "perturb_map", "record",
+           "simulate", "simulate_trajectory", "wheel_odometry", "write_bag"]

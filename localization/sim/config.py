@@ -6,6 +6,7 @@ import hashlib
 import math
 from dataclasses import asdict, dataclass, field, replace
 
+from localization.sim.perturb import MapPerturbation
 from localization.sim.vehicle import CarModel, DiffDriveModel, SimulationError
 
 __all__ = ["DIFFERENTIAL_ROUTE", "DIFFERENTIAL_START", "PHYSICS_RATE_HZ", "SENSOR_START_DELAY_NS", "T0_NS",
@@ -66,10 +67,16 @@ class SimConfig:
     kidnap_at: float | None = None  # seconds after the start
     kidnap_to: tuple | None = None  # (x, y, yaw)
     car: CarModel | DiffDriveModel = field(default_factory=CarModel)  # the vehicle (its kinematics and follower)
+    # the world the lidar sees: None, the map itself; else the map perturbed (``perturb_map``: boxes, people,
+    # glass, scale), with the planned trajectory kept clear
+    world: MapPerturbation | None = None
 
     def key(self) -> str:
         """Stable digest of the configuration (for caches)."""
-        text = repr(sorted(asdict(self).items()))
+        items = asdict(self)
+        if items["world"] is None:  # the unperturbed world keeps the digests recorded before the field existed
+            del items["world"]
+        text = repr(sorted(items.items()))
         return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 

@@ -19,6 +19,7 @@ from localization.bags import (
 from localization.core.geometry import wrap_angle
 from localization.core.occupancy_map import OccupancyMap, load_map
 from localization.sim.config import PHYSICS_RATE_HZ, SENSOR_START_DELAY_NS, T0_NS, SimConfig, SimulationError
+from localization.sim.perturb import perturb_map
 from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory
 from localization.sim.trajectory import Trajectory, simulate_trajectory
 
@@ -58,7 +59,10 @@ def simulate(cfg: SimConfig, occupancy_map: OccupancyMap | None = None) -> Recor
     if abs(per - round(per)) > 1e-9:
         raise SimulationError(f"scan_rate must divide {PHYSICS_RATE_HZ} Hz, got {cfg.scan_rate}")
     scan_steps = np.arange(0, len(traj.t), int(round(per)))
-    lidar = Lidar(occupancy_map, cfg, scan_rng)
+    world = occupancy_map
+    if cfg.world is not None:  # the scans come from the perturbed world; the route stays planned on the map
+        world = perturb_map(occupancy_map, cfg.world, keep_free=traj.poses[:, :2])
+    lidar = Lidar(world, cfg, scan_rng)
     if cfg.sweep:
         ranges = lidar.scan_swept(traj, traj.t[scan_steps])
     else:
@@ -153,7 +157,7 @@ def code_version() -> str:
     h = hashlib.sha1()
     package = Path(__file__).resolve().parents[1]
     for name in ("sim/config.py", "sim/vehicle.py", "sim/trajectory.py", "sim/sensors.py", "sim/recorder.py",
-                 "core/raycast/exact.py", "core/geometry.py", "bags/writer.py"):
+                 "sim/perturb.py", "core/raycast/exact.py", "core/geometry.py", "bags/writer.py"):
         try:
             h.update((package / name).read_bytes())
         except OSError:
