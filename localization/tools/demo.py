@@ -294,6 +294,9 @@ def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
         conv = float(res.agreement_t[hit[0]] - t0) if hit.size else None
         how = f"agreement >= {HEALTHY_AGREEMENT}"
     out.update(time_to_converge_s=conv, converge_by=how, confident_agreement_median=conf_agree)
+    # jumps once converged (a global start's first estimates are the mean of a spread cloud: not jumps)
+    after = res.est_t >= t0 + conv if conv is not None else np.zeros(len(res.est_t), dtype=bool)
+    out["max_jump_after_converge_m"] = M.max_jump(res.est_poses[after]) if conv is not None else None
     h = np.asarray(res.health, dtype=float)
     h = h[np.isfinite(h)]
     out["health_lost_share"] = float(np.mean(h < p.health_lost_floor)) if h.size else None
@@ -307,10 +310,12 @@ def pioneer_table(results: list) -> str:
         conv = pm.get("time_to_converge_s")
         start = "global" if m["initial_pose_source"].startswith("global") else "start pose"
         return (f"{name:<9} {start:<13} {'never' if conv is None else f'{conv:.1f} s':>9} "
-                f"{pm.get('converge_by', ''):<16} {pm.get('max_jump_m', 0.0):>7.2f}m {pm.get('recoveries', 0):>5} "
+                f"{pm.get('converge_by', ''):<16} {pm.get('max_jump_m', 0.0):>7.2f}m "
+                f"{_f(pm.get('max_jump_after_converge_m')):>10} {pm.get('recoveries', 0):>5} "
                 f"{_f(pm.get('confident_agreement_median')):>9} {_f(pm.get('error_vs_yardstick_median_m')):>7} "
                 f"{_f(pm.get('holding_share')):>8} {_f(pm.get('health_lost_share')):>8}")
-    return _table(f"{'bag':<9} {'start':<13} {'converge':>9} {'(by)':<16} {'max jump':>8} {'recov':>5} "
+    return _table(f"{'bag':<9} {'start':<13} {'converge':>9} {'(by)':<16} {'max jump':>8} {'after conv':>10} "
+                  f"{'recov':>5} "
                   f"{'agreement':>9} {'ref med':>7} {'disagree':>8} {'health<':>8}", results, 9, row)
 
 
@@ -475,7 +480,9 @@ def main(argv=None) -> int:
         print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "
               f"first time from which the estimate stays within {CONVERGED_M} m of the yardstick's confident poses "
               f"(or, without a confident pose in the first {EARLY_REFERENCE_S:.0f} s, the first agreement >= "
-              f"{HEALTHY_AGREEMENT}); recov = global re-spreads; agreement = median scan-map agreement where the "
+              f"{HEALTHY_AGREEMENT}); after conv = largest jump between consecutive estimates once converged; "
+              "recov = recoveries (a challenger replaced the cloud, or an impossible cloud was re-spread); "
+              "agreement = median scan-map agreement where the "
               "yardstick is confident; ref med = median error vs the yardstick there (m); disagree = share of scans "
               "after which Localizer.status said the scans disagree with the map; health< = share of sensor "
               "updates with health below health_lost_floor")
