@@ -208,11 +208,12 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
     from localization.core.parameters import Parameters
     from localization.core.scan import scan_time
     from localization.ros.conversions import scan_from_msg
-    odom_offset = Parameters.from_yaml(params_file).odom_time_offset
+    node_params = Parameters.from_yaml(params_file)
+    odom_offset = node_params.odom_time_offset
 
-    def sweep_offset(msg) -> float:
+    def sweep_offset(msg) -> float:  # the scan's time under the node's stamp convention, minus its stamp
         scan = scan_from_msg(msg)
-        return scan_time(scan) - scan.stamp
+        return scan_time(scan, node_params.scan_stamp, node_params.scan_stamp_offset) - scan.stamp
     result = {"particles": particles, "ray_caster": ray_caster, "scan_hz": 40.0, "odom_hz": 50.0,
               "extra_params": list(extra_params), "load_average_start": os.getloadavg()[0]}
     try:
