@@ -66,7 +66,7 @@ from localization.core.geometry import compose, integrate_twists, inverse, relat
 from localization.core.matching import MatcherConfig
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.scan import beam_angles, clean_ranges
-from localization.eval.reference import ReferenceTrack, build_reference, read_odometry, read_scans
+from localization.eval.reference import ReferenceTrack, build_reference, odometry_inputs, read_odometry, read_scans
 
 KEYS = ("odom_time_offset_s", "odom_speed_scale", "odom_yaw_rate_scale", "odom_yaw_rate_bias", "laser_offset_x",
         "laser_offset_y", "laser_offset_yaw", "lidar_scale_to_map_scale")
@@ -132,9 +132,7 @@ def dead_reckon_channels(odom_t, twist, query_t, a=1.0, b=1.0, c=0.0, delta_v=0.
     constant, so each piece is one exact arc (``integrate_twists``), composed in closed form.
     The last twists are extrapolated, the first run backwards before the first breakpoint.
     With δ_v = δ_ω = δ this is ``reference.dead_reckon(odom_t, twist, query_t − δ)``."""
-    t = np.asarray(odom_t, dtype=float)
-    tw = np.asarray(twist, dtype=float).reshape(-1, 3)
-    q = np.asarray(query_t, dtype=float)
+    t, tw, q = odometry_inputs(odom_t, twist, query_t)
     M = len(t)
     if M < 2:
         return np.zeros(q.shape + (3,))

@@ -182,15 +182,19 @@ def odometry_chain_loop(odom_t, twist, a=1.0, b=1.0, c=0.0) -> np.ndarray:
     return poses
 
 
+def odometry_inputs(odom_t, twist, query_t):
+    """The stamps (M,), twists (M, 3) and query times as float arrays (dead reckoning's inputs)."""
+    return (np.asarray(odom_t, dtype=float), np.asarray(twist, dtype=float).reshape(-1, 3),
+            np.asarray(query_t, dtype=float))
+
+
 def dead_reckon(odom_t, twist, query_t, a=1.0, b=1.0, c=0.0, chain=None) -> np.ndarray:
     """Odometry pose (odom frame, 0 at the first stamp) at ``query_t`` (odometry clock): the chain
     at the stamp before, moved on by the twist of the period holding the query (beyond the last
     stamp the last twist goes on, before the first one the first period's twist is run backwards:
     a robot already moving when the bag starts). ``chain``: ``odometry_chain`` of the same
     (a, b, c), when already computed."""
-    t = np.asarray(odom_t, dtype=float)
-    tw = np.asarray(twist, dtype=float).reshape(-1, 3)
-    q = np.asarray(query_t, dtype=float)
+    t, tw, q = odometry_inputs(odom_t, twist, query_t)
     M = len(t)
     if M < 2:
         return np.zeros(q.shape + (3,))
