@@ -488,6 +488,16 @@ def default_out_dir(bag: Path) -> Path:
     return out
 
 
+def _write_poses(path: Path, stamps, poses) -> Path:
+    """One pose per row: t (s, scan clock), x, y (m), theta (rad)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t", "x", "y", "theta"])
+        for t, (x, y, th) in zip(stamps, poses):
+            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
+    return path
+
+
 def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool = True) -> dict:
     """poses.csv, corrections.csv, metrics.json, agreement.csv, errors.csv (with truth), trajectory.png, error.png."""
     out_dir = Path(out_dir)
@@ -496,18 +506,8 @@ def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool =
     except OSError as exc:
         raise ReplayError(f"cannot create output folder {out_dir}: {exc}") from None
     files = {}
-    with open(out_dir / "poses.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["t", "x", "y", "theta"])
-        for t, (x, y, th) in zip(res.est_t, res.est_poses):
-            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
-    files["poses"] = out_dir / "poses.csv"
-    with open(out_dir / "corrections.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["t", "x", "y", "theta"])
-        for t, (x, y, th) in zip(res.corrected_t, res.corrected_poses):
-            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
-    files["corrections"] = out_dir / "corrections.csv"
+    files["poses"] = _write_poses(out_dir / "poses.csv", res.est_t, res.est_poses)
+    files["corrections"] = _write_poses(out_dir / "corrections.csv", res.corrected_t, res.corrected_poses)
     with open(out_dir / "agreement.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t", "agreement"])
