@@ -327,6 +327,25 @@ def test_time_to_converge_requires_staying_below():
     assert M.max_jump([[0, 0, 0], [0.3, 0.4, 0], [0.3, 0.5, 1]]) == pytest.approx(0.5)
 
 
+def test_false_recoveries_count_switches_to_a_place_more_than_1m_off():
+    t = np.arange(0.0, 10.0, 0.1)
+    e = np.full(t.size, 0.03)
+    e[:5] = 0.6  # converging in the first half second: not counted
+    assert M.false_recoveries(t, e) == 0
+    switched = e.copy()
+    switched[40:60] = np.hypot(2.0, 0.03)  # a 2 m switch for 2 s, then back
+    assert M.false_recoveries(t, switched) == 1
+    switched[80:82] = 2.0  # and another one
+    assert M.false_recoveries(t, switched) == 2
+    early = e.copy()
+    early[:15] = 3.0  # still 3 m off at 1.0-1.4 s: counted (after the first second)
+    assert M.false_recoveries(t, early) == 1
+    assert M.false_recoveries(t, early, t_start=0.5) == 0  # the first second from t_start = 0.5 ends at 1.5 s
+    assert M.false_recoveries(t, np.where(t > 5, np.nan, switched)) == 1  # NaN: not scored
+    assert M.false_recoveries([], []) == 0
+    assert M.false_recoveries(t, switched, threshold=2.5) == 0
+
+
 def test_scan_map_agreement_is_high_at_the_true_pose_and_drops_when_off():
     res, n = 0.05, 200
     grid = np.zeros((n, n), dtype=np.int8)

@@ -10,8 +10,10 @@ records them with ``localization.simulator`` the first time and reuses them afte
 
     $LOCALIZATION_CACHE_DIR/sim/<name>-<key>/bag      (default ~/.cache/localization)
 
-where ``key`` digests the trial's full ``SimConfig``, the map's content and the simulator's code
-(``simulator.code_version()``): change any of them and the bag is recorded anew.
+where ``key`` digests the trial's full ``SimConfig`` (its ``world`` too: a perturbed world's recording has
+its own key), the map's content and the simulator's code (``simulator.code_version()``): change any of
+them and the bag is recorded anew. ``<name>`` carries the overrides (a perturbed world by its
+``MapPerturbation.label()``).
 """
 from __future__ import annotations
 
@@ -19,14 +21,14 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from localization.core.occupancy_map import load_map
 from localization.core.paths import cache_dir, shared_dir
-from localization.sim import CarModel, SimConfig, code_version, record
+from localization.sim import CarModel, MapPerturbation, SimConfig, code_version, record
 
 # Corridor centre lines of stata_basement (map frame, metres), measured on the map's clearance.
 _DIAGONAL_SW = ((-8.45, 18.4), (-10.4, 16.3), (-12.5, 14.5), (-13.9, 12.4), (-15.2, 10.5), (-16.2, 9.5),
@@ -260,7 +262,8 @@ def sim_bag(name: str, *, cache: Path | None = None, log=None, **overrides) -> P
     """Path of the recorded bag of trial ``name`` (overrides: ``SimConfig`` fields), recording it
     into the cache first if needed. Safe against concurrent callers (atomic rename)."""
     cfg = trial_config(name, **overrides)
-    suffix = "" if not overrides else "-" + "-".join(f"{k}{v}" for k, v in sorted(overrides.items()))
+    suffix = "" if not overrides else "-" + "-".join(
+        f"{k}{v.label() if isinstance(v, MapPerturbation) else v}" for k, v in sorted(overrides.items()))
     root = Path(cache) if cache is not None else cache_dir()
     entry = root / "sim" / f"{name}{suffix}-{cache_key(cfg)}"
     bag = entry / "bag"
@@ -272,7 +275,7 @@ def sim_bag(name: str, *, cache: Path | None = None, log=None, **overrides) -> P
     tmp = Path(tempfile.mkdtemp(prefix=entry.name + ".tmp-", dir=entry.parent))
     try:
         rec = record(cfg, tmp / "bag")
-        summary = {"name": name, "overrides": overrides, "config": _jsonable(asdict(cfg)),
+        summary = {"name": name, "overrides": _jsonable(overrides), "config": _jsonable(asdict(cfg)),
                    "duration_s": rec.duration, "scans": int(len(rec.scan_t)),
                    "odometry": int(len(rec.odometry.t)), "min_clearance_m": rec.trajectory.min_clearance}
         (tmp / "config.json").write_text(json.dumps(summary, indent=2))
@@ -287,6 +290,8 @@ def sim_bag(name: str, *, cache: Path | None = None, log=None, **overrides) -> P
 
 
 def _jsonable(obj):
+    if is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(asdict(obj))
     if isinstance(obj, dict):
         return {k: _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):

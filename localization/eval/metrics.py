@@ -11,7 +11,11 @@ With ground truth:
   summarised as mean, median, 95th percentile, max and RMS;
 - heading error |wrap(θ̂_k − θ_k)| (truth yaw interpolated on the unwrapped angle);
 - time to converge: from the first estimate until the CT error falls below a threshold
-  (0.2 m) *for good* (it stays below for the rest of the run); None if it never does.
+  (0.2 m) *for good* (it stays below for the rest of the run); None if it never does;
+- false recoveries: the times the estimate switches to a place more than 1 m from the truth after the
+  first second, i.e. the runs of consecutive scored estimates with t ≥ t_start + 1 s and CT error > 1 m
+  (a run already under way at t_start + 1 s counts too). A simulated run is scored against the truth in
+  the map frame (``localization.sim.perturb``: q = c + (p − c) / s).
 
 Without ground truth, the scan–map agreement: project every valid beam of a scan from the
 estimated laser pose; the agreement is the fraction of endpoints lying within ``tolerance``
@@ -36,6 +40,8 @@ from localization.core.geometry import wrap_angle
 from localization.core.health import AGREEMENT_TOLERANCE_M, AgreementScorer  # noqa: F401 - re-exported
 
 CONVERGENCE_THRESHOLD_M = 0.2
+FALSE_RECOVERY_M = 1.0  # m: an estimate this far from the truth is in another place
+FALSE_RECOVERY_AFTER_S = 1.0  # s: estimates this soon after the start are not counted (convergence)
 
 
 # --------------------------------------------------------------------------------------------
@@ -100,6 +106,21 @@ def time_to_converge(t, errors, threshold: float = CONVERGENCE_THRESHOLD_M, t_st
     t0 = t[0] if t_start is None else t_start
     t_conv = t[0] if above.size == 0 else t[above[-1] + 1]
     return float(max(0.0, t_conv - t0))
+
+
+def false_recoveries(t, errors, threshold: float = FALSE_RECOVERY_M, after: float = FALSE_RECOVERY_AFTER_S,
+                     t_start: float | None = None) -> int:
+    """How many times the estimate goes to a place more than ``threshold`` from the truth: the runs of
+    consecutive ``errors`` > ``threshold`` among the samples with t ≥ ``t_start`` + ``after`` (``t_start``:
+    default the first sample's time; NaN errors are not scored)."""
+    t = np.asarray(t, dtype=float)
+    e = np.asarray(errors, dtype=float)
+    if e.size == 0:
+        return 0
+    t0 = t[0] if t_start is None else t_start
+    keep = (t >= t0 + after) & np.isfinite(e)
+    far = e[keep] > threshold
+    return int(far[0]) + int(np.count_nonzero(far[1:] & ~far[:-1])) if far.size else 0
 
 
 def max_jump(poses) -> float:

@@ -18,7 +18,10 @@ would receive it), else global localization (``--global`` forces it).
 
 Ground truth (optional): TF ``map -> base_link`` on ``/tf`` (what ``localization-simulate``
 records, like the racecar simulator), or ``--truth-topic`` carrying nav_msgs/Odometry,
-geometry_msgs/PoseStamped, PoseWithCovarianceStamped or tf2_msgs/TFMessage.
+geometry_msgs/PoseStamped, PoseWithCovarianceStamped or tf2_msgs/TFMessage. A simulated bag's /tf is
+the truth in the map frame (``localization.sim.perturb``: q = c + (p − c) / s, what the map shows where
+the car is); a bag drawn from a perturbed world also carries the world-frame truth on ``/truth/world``,
+scored as the second figure ``world_ct_error_m``.
 
 Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the current directory):
 
@@ -26,7 +29,8 @@ Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the curre
   each odometry message's time, and a sensor-corrected estimate when it is newer than the row
   before (t, scan clock, never goes backwards);
 - ``corrections.csv``: ``t,x,y,theta``, every sensor-corrected estimate at its scan's time;
-- ``metrics.json``: CT error statistics, heading error and time to converge (with truth),
+- ``metrics.json``: CT error statistics, heading error, time to converge and false recoveries
+  (``metrics.false_recoveries``) (with truth; ``world_ct_error_m`` against the world-frame truth),
   scan–map agreement, update timing, effective update rate (see ``localization.metrics``);
 - ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures (agreement
   of the estimate at each scan's time, t = that time on the scan clock, ``localization.eval.feed``);
@@ -68,6 +72,7 @@ from localization.ros.conversions import (
     stamp_to_sec,
     twist_from_odometry,
 )
+from localization.sim.recorder import WORLD_TRUTH_TOPIC
 
 PROG = "localization-replay"
 
@@ -135,6 +140,9 @@ class ReplayResult:
     scan_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # the estimate at each scan's time
     laser_source: str = "parameters"  # where the laser mount came from: "parameters" or "tf" (the bag's TF)
     laser_offset: tuple = ()  # (x m, y m, yaw rad): the laser mount used
+    # a simulated perturbed world's truth in the world frame (WORLD_TRUTH_TOPIC; truth_* is the map frame's)
+    world_truth_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    world_truth_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def has_truth(self) -> bool:
@@ -283,8 +291,13 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
         localizer = Localizer(params)
         localizer.set_map(occupancy_map)
+        world_truth = None  # (topic, stamps, poses): a perturbed world's truth in the world frame
+        if truth_topic is not None and truth_topic != WORLD_TRUTH_TOPIC and WORLD_TRUTH_TOPIC in infos \
+                and infos[WORLD_TRUTH_TOPIC].msgtype == POSE_STAMPED:
+            world_truth = (WORLD_TRUTH_TOPIC, [], [])
         topics = [scan_topic] + ([odom_topic] if odometry is None else []) \
-            + ([init_topic] if use_bag_initialpose else []) + ([truth_topic] if truth_topic else [])
+            + ([init_topic] if use_bag_initialpose else []) + ([truth_topic] if truth_topic else []) \
+            + ([WORLD_TRUTH_TOPIC] if world_truth else [])
         progress = _Progress(opts.progress, bag.start_ns, bag.end_ns, opts.label or bag_label(opts.bag))
         bag_duration = (bag.end_ns - bag.start_ns) * 1e-9
         if use_bag_initialpose:
@@ -297,7 +310,7 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         truth_t, truth_poses = [], []
         events = bag_events(bag, topics, scan_topic, odom_topic, init_topic if use_bag_initialpose else None,
                             truth_topic, (parent, child), truth_t, truth_poses, progress=progress.update,
-                            odometry=odometry)
+                            odometry=odometry, world_truth=world_truth)
         try:
             log = feeder.run(events, start, on_scan=opts.on_scan)
         except BagError as exc:
@@ -334,6 +347,10 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         corrected_t=corrected_t, corrected_poses=corrected_poses, scan_t=scan_t, scan_poses=scan_poses,
         laser_source=laser_source, laser_offset=(params.laser_offset_x, params.laser_offset_y,
                                                  params.laser_offset_yaw))
+    if world_truth is not None and world_truth[1]:
+        wt = np.asarray(world_truth[1], dtype=float)
+        order = np.argsort(wt, kind="stable")
+        res.world_truth_t, res.world_truth_poses = wt[order], np.asarray(world_truth[2], dtype=float)[order]
     if opts.reference or (opts.reference is None and not res.has_truth):
         from localization.eval.progress import busy
         from localization.eval.reference import reference_for_bag
@@ -354,13 +371,15 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
 
 
 def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | None, truth_topic: str | None,
-               truth_frames: tuple, truth_t: list, truth_poses: list, progress=None, odometry=None):
+               truth_frames: tuple, truth_t: list, truth_poses: list, progress=None, odometry=None,
+               world_truth=None):
     """A bag's filter input in bag-time order, converted as the node converts it: ``TwistData``
     (odometry), ``ScanData`` (scans), ``InitialPose`` (``init_topic``; None: not read); the truth
     (``truth_topic``, ``truth_frames`` = (parent, child)) is collected into ``truth_t`` /
     ``truth_poses`` on the way; ``progress(t_ns)`` per message. ``odometry``: a
     ``datasets.BagOdometry`` (odometry from TF) whose twists are merged in at their record times
-    (each before a message recorded at the same time), instead of ``odom_topic``."""
+    (each before a message recorded at the same time), instead of ``odom_topic``. ``world_truth``:
+    (topic, stamps list, poses list) filled from a second truth topic (``WORLD_TRUTH_TOPIC``)."""
     parent, child = truth_frames
     twists = [] if odometry is None else odometry.messages
     rec = np.zeros(0, dtype=np.int64) if odometry is None else np.asarray(odometry.record_ns, dtype=np.int64)
@@ -374,6 +393,8 @@ def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | 
             j += 1
         if m.topic == truth_topic:
             _collect_truth(m.msg, m.msgtype, parent, child, truth_t, truth_poses)
+        elif world_truth is not None and m.topic == world_truth[0]:
+            _collect_truth(m.msg, m.msgtype, parent, child, world_truth[1], world_truth[2])
         if m.topic == scan_topic:
             yield scan_from_msg(m.msg)
         elif m.topic == odom_topic:
@@ -458,6 +479,11 @@ def compute_metrics(res: ReplayResult) -> dict:
                 out["initial_pose_heading_error_rad"] = float(abs(wrap_angle(res.initial_pose[2] - truth0[2])))
         out["converge_threshold_m"] = M.CONVERGENCE_THRESHOLD_M
         out["scored_estimates"] = int(cmp.t.size)
+        # switches to a place > 1 m from the (map-frame) truth after the first second
+        out["false_recoveries"] = M.false_recoveries(cmp.t, cmp.ct_error, t_start=t_start)
+        if len(res.world_truth_t):  # a perturbed world: the error against the car's pose in the world as well
+            world = M.compare_to_truth(res.est_t, res.est_poses, res.world_truth_t, res.world_truth_poses)
+            out["world_ct_error_m"] = M.error_stats(world.ct_error)
         from localization.eval.reference import truth_decomposition  # along-/cross-track vs truth
         out.update(truth_decomposition(res.est_t, res.est_poses, res.truth_t, res.truth_poses))
     if res.reference is not None:

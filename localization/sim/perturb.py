@@ -1,11 +1,12 @@
 """A perturbed world for the simulated lidar: the map the filter localizes in, changed the way a real
-building differs from its map (``MapPerturbation``, ``perturb_map``).
+building differs from its map (``MapPerturbation``, ``perturb_map``; ``STANDARD_PERTURBATION``), and the
+truth in the map's frame (``world_to_map``).
 
 The simulator plans the route on the given map but ray casts the scans in ``perturb_map(map, world)``,
 so a simulated error is no longer measured on the filter's own grid. The perturbed grid W is built
 from the map M in this order (cell centres p, distances in metres)::
 
-    scale:   W(p) = M(c + (p − c) / s)           c = centroid of ``keep_free`` (else the map centre)
+    scale:   W(p) = M(c + (p − c) / s)           c = ``scale_centre``: centroid of ``keep_free`` (else the map centre)
     glass:   patches of radius GLASS_RADIUS_M around random wall cells: occupied and unknown → free
     boxes:   squares of side U(BOX_SIDE_M) with a centre at distance U(BOX_WALL_GAP_M) from a wall
     people:  discs of radius PERSON_RADIUS_M anywhere in free space
@@ -15,6 +16,17 @@ Wall cells are occupied cells with a free 4-neighbour. Boxes and people are plac
 dist(p, keep_free) > clearance + their half size, so nothing is put on the planned path. A glass
 patch makes the lidar's beams pass through the wall until the next occupied or unknown cell (the
 simulator's ray caster stops at both).
+
+Truth in the map frame (``world_to_map``)::
+
+    q = c + (p − c) / s,    θ_q = θ_p
+
+A robot at world pose (p, θ_p) sees what the map shows at (q, θ_p) (the scale rule above). A localizer
+in the map M can only report q, so q is the truth its estimates are scored against: the simulator's
+``Recording.truth_poses`` and the bag's /tf map → base_link. The world pose p is kept as the
+world-frame truth (``Recording.world_truth_poses``, the bag's /truth/world when the world is perturbed);
+scoring against it adds (1 − 1/s)·|p − c|, which no localizer following the map can remove. At s = 1
+(no scale error, or no perturbation) q is p itself, bit for bit.
 """
 from __future__ import annotations
 
@@ -25,7 +37,8 @@ import numpy as np
 
 from localization.core.occupancy_map import OCCUPIED_THRESHOLD, OccupancyMap
 
-__all__ = ["BOX_SIDE_M", "BOX_WALL_GAP_M", "GLASS_RADIUS_M", "PERSON_RADIUS_M", "MapPerturbation", "perturb_map"]
+__all__ = ["BOX_SIDE_M", "BOX_WALL_GAP_M", "GLASS_RADIUS_M", "PERSON_RADIUS_M", "STANDARD_PERTURBATION",
+           "MapPerturbation", "perturb_map", "scale_centre", "world_to_map"]
 
 BOX_SIDE_M = (0.4, 0.8)  # m: side of a furniture box, uniform in this range
 BOX_WALL_GAP_M = (0.3, 0.8)  # m: distance of a box centre from the nearest wall, uniform in this range
@@ -43,6 +56,40 @@ class MapPerturbation:
     scale: float = 1.0  # world size / map size (e.g. 1.01: the building is 1 % larger than its map)
     clearance: float = 0.6  # m: cells this close to ``keep_free`` points keep the map's value
     seed: int = 0
+
+    def label(self) -> str:
+        """A short name of the perturbation (for file names and tables), e.g. ``b6p4g0.05s1.01c0.6seed1``."""
+        return (f"b{self.boxes}p{self.people}g{self.glass_fraction:g}s{self.scale:g}c{self.clearance:g}"
+                f"seed{self.seed}")
+
+
+#: The standard perturbed world of the simulated trials (``localization-demo``, ``test/test_sim_perturbed.py``):
+#: 6 boxes, 4 people, 5 % of the walls glass, the building 1 % larger than its map.
+STANDARD_PERTURBATION = MapPerturbation(boxes=6, people=4, glass_fraction=0.05, scale=1.01, seed=1)
+
+
+def _keep_points(keep_free) -> np.ndarray:
+    """``keep_free`` as finite (N, 2) points."""
+    keep = np.zeros((0, 2)) if keep_free is None else np.asarray(keep_free, dtype=float).reshape(-1, 2)
+    return keep[np.all(np.isfinite(keep), axis=1)]
+
+
+def scale_centre(occupancy_map: OccupancyMap, keep_free=None) -> np.ndarray:
+    """The centre c (x, y) the world is scaled about: the centroid of the finite ``keep_free`` points
+    (the planned path), else the map's centre."""
+    keep = _keep_points(keep_free)
+    m = occupancy_map
+    return keep.mean(axis=0) if len(keep) else m.grid_to_world(np.array([m.width, m.height]) / 2.0 - 0.5)
+
+
+def world_to_map(poses, scale: float, centre) -> np.ndarray:
+    """World poses (N, 3) (x, y, θ) as the map shows them: q = c + (p − c) / s, θ unchanged (a new
+    array; at ``scale`` 1 an exact copy)."""
+    out = np.array(poses, dtype=float, copy=True)
+    if scale != 1.0:
+        c = np.asarray(centre, dtype=float)
+        out[..., :2] = c + (out[..., :2] - c) / scale
+    return out
 
 
 def _distance_to(mask: np.ndarray, resolution: float) -> np.ndarray:
@@ -87,12 +134,10 @@ def perturb_map(occupancy_map: OccupancyMap, perturbation: MapPerturbation, keep
     m = occupancy_map
     res = m.resolution
     rng = np.random.default_rng(p.seed)
-    keep = np.zeros((0, 2)) if keep_free is None else np.asarray(keep_free, dtype=float).reshape(-1, 2)
-    keep = keep[np.all(np.isfinite(keep), axis=1)]
+    keep = _keep_points(keep_free)
 
     if p.scale != 1.0:
-        centre = keep.mean(axis=0) if len(keep) else m.grid_to_world(np.array([m.width, m.height]) / 2.0 - 0.5)
-        base = _scaled(m, p.scale, centre)
+        base = _scaled(m, p.scale, scale_centre(m, keep))
     else:
         base = m.data.copy()
     data = base.copy()

@@ -1,4 +1,10 @@
-"""A whole simulated recording (``simulate``) and writing it as a rosbag2 bag (``record``)."""
+"""A whole simulated recording (``simulate``) and writing it as a rosbag2 bag (``record``).
+
+The ground truth is in the map's frame (``perturb.world_to_map``: q = c + (p − c) / s, heading unchanged):
+``Recording.truth_poses`` and the bag's /tf map → base_link say where the map shows what the car sees;
+``Recording.world_truth_poses`` (and, in a perturbed world, ``WORLD_TRUTH_TOPIC``) where the car is in the
+world. Without a scale error the two are the same poses, bit for bit; the bag of the unperturbed world
+(``SimConfig.world`` None) has no world topic."""
 from __future__ import annotations
 
 import hashlib
@@ -19,9 +25,14 @@ from localization.bags import (
 from localization.core.geometry import wrap_angle
 from localization.core.occupancy_map import OccupancyMap, load_map
 from localization.sim.config import PHYSICS_RATE_HZ, SENSOR_START_DELAY_NS, T0_NS, SimConfig, SimulationError
-from localization.sim.perturb import perturb_map
+from localization.sim.perturb import perturb_map, scale_centre, world_to_map
 from localization.sim.sensors import Lidar, OdometryStream, odometry_from_trajectory
 from localization.sim.trajectory import Trajectory, simulate_trajectory
+
+#: Topic of the world-frame truth (geometry_msgs/msg/PoseStamped, frame ``WORLD_FRAME``) in the bag of a
+#: perturbed world; /tf map -> base_link carries the truth in the map frame.
+WORLD_TRUTH_TOPIC = "/truth/world"
+WORLD_FRAME = "world"
 
 # ============================================================================================
 # The whole recording
@@ -38,8 +49,14 @@ class Recording:
     scan_angle_increment: float
     scan_time_increment: float  # s between beams (0: the whole scan at its stamp)
     truth_t: np.ndarray  # times of the /tf ground truth (every odom and scan stamp)
-    truth_poses: np.ndarray
+    truth_poses: np.ndarray  # (T, 3) the truth in the map frame: where the map shows what the car sees
     initial_pose: np.ndarray | None  # what /initialpose says
+    world_truth_poses: np.ndarray | None = None  # (T, 3) the car's pose in the world (None: as truth_poses)
+    scale_centre: np.ndarray | None = None  # c of world_to_map (None: no scale error)
+
+    def __post_init__(self):
+        if self.world_truth_poses is None:
+            self.world_truth_poses = self.truth_poses
 
     @property
     def duration(self) -> float:
@@ -74,8 +91,13 @@ def simulate(cfg: SimConfig, occupancy_map: OccupancyMap | None = None) -> Recor
     if cfg.initial_pose:
         initial = np.asarray(cfg.start, dtype=float) + np.asarray(cfg.initial_offset, dtype=float)
         initial[2] = wrap_angle(initial[2])
+    world_truth = traj.poses[truth_steps]
+    truth, centre = world_truth, None
+    if cfg.world is not None and cfg.world.scale != 1.0:  # the map frame: q = c + (p − c) / s
+        centre = scale_centre(occupancy_map, traj.poses[:, :2])
+        truth = world_to_map(world_truth, cfg.world.scale, centre)
     return Recording(cfg, traj, odom, traj.t[scan_steps], ranges, lidar.angle_increment, lidar.time_increment,
-                     traj.t[truth_steps], traj.poses[truth_steps], initial)
+                     traj.t[truth_steps], truth, initial, world_truth, centre)
 
 
 # ============================================================================================
@@ -101,14 +123,18 @@ def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = 
 
     with BagWriter(path, storage=storage, overwrite=overwrite) as w:
         ts = w.typestore
+        T = ts.types
         w.add_topic("/tf_static", "tf2_msgs/msg/TFMessage")
         w.add_topic("/tf", "tf2_msgs/msg/TFMessage")
         w.add_topic("/odom", "nav_msgs/msg/Odometry")
         w.add_topic("/scan", "sensor_msgs/msg/LaserScan", qos="sensor_data")
+        world_topic = cfg.world is not None  # a perturbed world: its truth beside the map frame's
+        if world_topic:
+            w.add_topic(WORLD_TRUTH_TOPIC, "geometry_msgs/msg/PoseStamped")
         w.write("/tf_static", T0_NS, make_tf_message(ts, [make_transform_stamped(
             ts, T0_NS, "base_link", "laser", x=cfg.laser_offset[0], y=cfg.laser_offset[1],
             yaw=cfg.laser_offset[2])]))
-        x, y, th = rec.trajectory.poses[0]  # the car waits at its start pose until the sensors start
+        x, y, th = rec.truth_poses[0]  # the car waits at its start pose until the sensors start
         w.write("/tf", T0_NS, make_tf_message(ts, [make_transform_stamped(ts, T0_NS, "map", "base_link",
                                                                           x=x, y=y, yaw=th)]))
         if rec.initial_pose is not None:
@@ -121,6 +147,9 @@ def write_bag(rec: Recording, path, storage: str = "sqlite3", overwrite: bool = 
                 x, y, th = rec.truth_poses[k]
                 w.write("/tf", t_ns, make_tf_message(ts, [make_transform_stamped(ts, t_ns, "map", "base_link",
                                                                                   x=x, y=y, yaw=th)]))
+                if world_topic:
+                    w.write(WORLD_TRUTH_TOPIC, t_ns, T["geometry_msgs/msg/PoseStamped"](
+                        header=make_header(ts, t_ns, WORLD_FRAME), pose=make_pose(ts, *rec.world_truth_poses[k])))
             elif topic == "/odom":
                 (x, y, th), (vx, vy, wz) = odom.pose[k], odom.twist[k]
                 w.write("/odom", t_ns, make_odometry(ts, t_ns, "odom", "base_link", x, y, th, vx, vy, wz))
