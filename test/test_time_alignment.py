@@ -52,7 +52,10 @@ def test_buffer_pieces_interpolate_and_extrapolate_by_hand():
         expected = compose(expected, integrate_twist(vx, 0.0, wz, dt))
     assert buf.motion(1.01, 1.09) == pytest.approx(expected, abs=1e-15)
     assert buf.motion(1.09, 1.01) == pytest.approx(inverse(expected), abs=1e-12)  # backwards: the inverse
-    assert buf.motion(0.5, 1.0) == pytest.approx(np.zeros(3))  # before the oldest stamp nothing is known
+    # before the oldest stamp: its twist holds for buf.extrapolation (a recording that starts mid-drive), then nothing
+    assert buf.motion(0.5, 1.0) == pytest.approx(integrate_twist(9.0, 0.0, 9.0, buf.extrapolation), abs=1e-12)
+    assert buf.twist_at(1.0 - 0.5 * buf.extrapolation) == pytest.approx([9.0, 0.0, 9.0])
+    assert buf.twist_at(1.0 - buf.extrapolation - 0.01) == pytest.approx(np.zeros(3))
     assert buf.twist_at(1.03) == pytest.approx([2.0, 0.0, 0.5]) and buf.twist_at(1.07) == pytest.approx([3, 0, -0.5])
     # the last twist is extrapolated at most buf.extrapolation: stopped odometry stops the particles
     far = buf.motion(1.06, 1.06 + buf.extrapolation + 5.0)

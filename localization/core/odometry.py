@@ -89,20 +89,22 @@ class OdometryBuffer:
             del self._twist[:n]
 
     def twist_at(self, t: float) -> np.ndarray:
-        """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end; zero
-        before the oldest stamp, past the extrapolation limit, or when empty)."""
-        if not self._t or t <= self._t[0] or t >= self._t[-1] + self.extrapolation:
+        """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end, the oldest just
+        before the start; zero beyond the extrapolation limit either side, or when empty)."""
+        if not self._t or t <= self._t[0] - self.extrapolation or t >= self._t[-1] + self.extrapolation:
             return np.zeros(3)
         k = min(int(np.searchsorted(self._t, t, side="left")), len(self._t) - 1)
         return np.array(self._twist[k])
 
     def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """Pieces of constant twist covering [t0, t1] (t0 ≤ t1), cut at message stamps:
-        durations (P,) and twists (P, 3). Pieces before the oldest stamp have zero twist."""
+        durations (P,) and twists (P, 3). The oldest message's period has no known start: its twist
+        holds for ``extrapolation`` before its stamp, as the newest one's holds after; beyond, the twist is zero."""
         if not t1 > t0:
             return np.zeros(0), np.zeros((0, 3))
         stamps = np.asarray(self._t, dtype=float)
-        cuts = np.append(stamps, stamps[-1] + self.extrapolation) if stamps.size else stamps
+        cuts = np.concatenate([[stamps[0] - self.extrapolation], stamps, [stamps[-1] + self.extrapolation]]) \
+            if stamps.size else stamps
         inner = cuts[(cuts > t0) & (cuts < t1)]
         edges = np.concatenate([[t0], inner, [t1]])
         dts = np.diff(edges)
@@ -110,7 +112,7 @@ class OdometryBuffer:
         if stamps.size:
             mid = 0.5 * (edges[:-1] + edges[1:])
             k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
-            known = (mid > stamps[0]) & (mid < stamps[-1] + self.extrapolation)
+            known = (mid > stamps[0] - self.extrapolation) & (mid < stamps[-1] + self.extrapolation)
             twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
         keep = dts > 0
         return dts[keep], twists[keep]
