@@ -1,10 +1,12 @@
 """The simulator's perturbed world (``perturb_map``): the lidar sees boxes, people, glass and a scale error
-the filter's map does not have, the planned path stays clear, and the filter still tracks the car."""
+the filter's map does not have, the planned path stays clear, the truth is scored in the map frame
+(``world_to_map``: q = c + (p − c) / s), and the filter still tracks the car at 2 m/s."""
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scipy.ndimage import distance_transform_edt
 
 from localization.core.localizer import Localizer
@@ -13,12 +15,12 @@ from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder, recording_events
-from localization.eval.metrics import compare_to_truth
+from localization.eval.metrics import compare_to_truth, false_recoveries
 from localization.sim import recorder as S
-from localization.sim.perturb import MapPerturbation, perturb_map
+from localization.sim.perturb import STANDARD_PERTURBATION, MapPerturbation, perturb_map, world_to_map
 from localization.sim.trajectory import simulate_trajectory
 
-WORLD = MapPerturbation(boxes=6, people=4, glass_fraction=0.05, scale=1.01, seed=1)
+WORLD = STANDARD_PERTURBATION  # 6 boxes, 4 people, 5 % glass, scale 1.01
 _CACHE = {}
 
 
@@ -64,35 +66,90 @@ def test_scale_scales_the_world_about_the_kept_points():
     assert np.array_equal(perturb_map(m, MapPerturbation()).data, m.data)
 
 
-def localize(cfg, seed: int = 1):
-    """(mean position error after the first second (m), Localizer recoveries) of ``cfg`` localized with
-    config/params.yaml from its /initialpose."""
+def test_world_to_map_scales_a_point_back_about_the_centre():
+    c = np.array([-6.4, 20.3])
+    p = np.array([[c[0] + 10.2, c[1] - 5.1, 0.7]])  # 11.4 m from c
+    q = world_to_map(p, 1.02, c)
+    assert q[0, :2] == pytest.approx(c + np.array([10.0, -5.0]))  # c + (p − c) / 1.02
+    assert q[0, 2] == 0.7  # the heading is unchanged
+    assert np.hypot(*(q[0, :2] - p[0, :2])) == pytest.approx((1 - 1 / 1.02) * np.hypot(10.2, 5.1))
+    assert np.array_equal(world_to_map(p, 1.0, c), p)  # scale 1: the very poses
+    assert np.array_equal(p, [[c[0] + 10.2, c[1] - 5.1, 0.7]])  # the input is unchanged
+
+
+def test_a_recording_carries_the_truth_in_the_map_frame():
+    m = stata()
+    cfg = replace(drive(replace(WORLD, scale=1.02)), duration=2.0)
+    rec = S.simulate(cfg, m)
+    c = rec.trajectory.poses[:, :2].mean(axis=0)  # the planned path's centroid
+    assert rec.scale_centre == pytest.approx(c)
+    assert np.array_equal(rec.world_truth_poses, rec.trajectory.poses[np.rint(rec.truth_t * 200).astype(int)])
+    assert rec.truth_poses[:, :2] == pytest.approx(c + (rec.world_truth_poses[:, :2] - c) / 1.02)
+    assert np.array_equal(rec.truth_poses[:, 2], rec.world_truth_poses[:, 2])
+    clean = S.simulate(replace(cfg, world=None), m)
+    assert clean.world_truth_poses is clean.truth_poses and clean.scale_centre is None
+    assert np.array_equal(clean.truth_poses, rec.world_truth_poses)  # the same drive
+
+
+def localize(cfg, seed: int = 1, **overrides) -> dict:
+    """``cfg`` localized with config/params.yaml (and parameter ``overrides``) from its /initialpose, scored after
+    the first second: mean position error against the truth in the map frame ("map") and against the world-frame
+    truth ("world") (m), Localizer recoveries, false recoveries (switches to a place > 1 m from the map-frame
+    truth). Cached: the tests below share runs."""
+    key = (cfg.key(), seed, tuple(sorted(overrides.items())))
+    if key in _CACHE:
+        return _CACHE[key]
     rec = S.simulate(cfg, stata())
-    loc = Localizer(Parameters.from_yaml(config_dir() / "params.yaml", random_seed=seed))
+    loc = Localizer(Parameters.from_yaml(config_dir() / "params.yaml", random_seed=seed, **overrides))
     loc.set_map(stata())
     loc.set_initial_pose(rec.initial_pose, stamp=-0.001)
     feeder = Feeder(loc)
     feeder.feed(recording_events(rec))
     t, poses = feeder.log.estimates()
     err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
-    return float(err.ct_error[err.t > 1.0].mean()), loc.recoveries
+    world = compare_to_truth(t, poses, rec.truth_t, rec.world_truth_poses)
+    _CACHE[key] = {"map": float(err.ct_error[err.t > 1.0].mean()), "world": float(world.ct_error[world.t > 1.0].mean()),
+                   "recoveries": loc.recoveries, "false_recoveries": false_recoveries(err.t, err.ct_error, t_start=0.0)}
+    return _CACHE[key]
 
 
-def test_the_filter_tracks_a_drive_in_the_perturbed_world():
-    cfg = drive(WORLD)
+def test_the_filter_tracks_a_drive_in_the_unscaled_perturbed_world():
+    cfg = drive(replace(WORLD, scale=1.0))
     assert cfg.key() != drive(None).key() and drive(None).key() == trial_config(
         "trial2_noise0.3", duration=12.0, speed=2.0).key()
-    err, recoveries = localize(cfg)
-    assert recoveries == 0
-    # not the 0.03 m of the unscaled world: a 1 % scale error puts the world's walls (1 − 1/s)·r from the map's
-    # (r: distance from the scaling centre, 0.05 m on average over this drive) and the estimate follows the walls
-    # it sees (measured error in docs/performance.md, "Simulated drives in a perturbed world")
-    assert err <= 0.08
-    err_unscaled, recoveries = localize(replace(cfg, world=replace(WORLD, scale=1.0)))
-    assert recoveries == 0
-    assert err_unscaled <= 0.03
+    r = localize(cfg)
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.03 and r["world"] == r["map"]  # no scale error: one truth
 
 
-if __name__ == "__main__":  # the figures: mean error without and with the perturbation, by scale
+def test_the_filter_tracks_a_2mps_drive_in_the_standard_perturbed_world():
+    r = localize(drive(WORLD))  # scale 1.01
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.03  # in the map frame: the error a localizer in the map can remove
+    assert r["world"] > r["map"] + 0.02  # the world-frame figure adds (1 − 1/s)·|p − c|
+
+
+def test_no_false_recovery_at_scale_1_02():
+    r = localize(drive(replace(WORLD, scale=1.02)))
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.05  # tracks, but not within the 0.03 target (next test)
+
+
+@pytest.mark.xfail(strict=True, reason="the world's ranges are s times the map's (a range-scale conflict the "
+                   "filter does not estimate): the estimate lags along the track; see docs/performance.md")
+def test_the_map_frame_target_at_scale_1_02():
+    assert localize(drive(replace(WORLD, scale=1.02)))["map"] <= 0.03
+
+
+def test_a_calibrated_range_scale_removes_the_conflict_at_scale_1_02():
+    # lidar_scale_to_map_scale = 1/s: the correction localization-calibrate estimates on a real car
+    r = localize(drive(replace(WORLD, scale=1.02)), lidar_scale_to_map_scale=1 / 1.02)
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.03
+
+
+if __name__ == "__main__":  # the figures: errors without and with the perturbation, by scale
     for world in (None, *(replace(WORLD, scale=s) for s in (1.0, 1.01, 1.02))):
-        print(world, *localize(drive(world)))
+        print(world, localize(drive(world)))
+    print("scale 1.02, lidar_scale_to_map_scale 1/1.02",
+          localize(drive(replace(WORLD, scale=1.02)), lidar_scale_to_map_scale=1 / 1.02))
