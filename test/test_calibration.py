@@ -19,7 +19,7 @@ DURATION = 20.0  # s of the trial: turns and speed changes enough for every para
 
 # the calibrator's targets
 TOLERANCE = {"odom_time_offset_s": 0.005, "laser_offset_x": 0.02, "laser_offset_y": 0.02,
-             "laser_offset_yaw": math.radians(0.5)}
+             "laser_offset_yaw": math.radians(0.5), "map_wall_depth": 0.005}
 RELATIVE = {"odom_speed_scale": 0.005, "odom_yaw_rate_scale": 0.01, "lidar_scale_to_map_scale": 0.005}
 
 
@@ -31,7 +31,8 @@ def expected(cfg) -> dict:
             "odom_yaw_rate_bias": -cfg.yaw_rate_bias / cfg.yaw_rate_scale,
             "laser_offset_x": cfg.laser_offset[0], "laser_offset_y": cfg.laser_offset[1],
             "laser_offset_yaw": cfg.laser_offset[2],
-            "lidar_scale_to_map_scale": 1.0 / cfg.range_scale}
+            "lidar_scale_to_map_scale": 1.0 / cfg.range_scale,
+            "map_wall_depth": 0.0}  # the simulator's lidar ends its beams on the free-space edge
 
 
 @pytest.fixture(scope="module")

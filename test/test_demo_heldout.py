@@ -18,7 +18,8 @@ def _fake_calibrator(table):
 
 
 TABLE = {b: {"odom_time_offset_s": 0.1 * 3 ** i, "odom_speed_scale": 1.0 + 0.01 * 3 ** i,
-             "lidar_scale_to_map_scale": 1.0 - 0.001 * 3 ** i, "laser_offset_x": 9.0}
+             "lidar_scale_to_map_scale": 1.0 - 0.001 * 3 ** i, "map_wall_depth": 0.01 * 2 ** i,
+             "laser_offset_x": 9.0}
          for i, b in enumerate(("bag1", "bag2", "bag3"))}  # no bag's fold mean equals the all-bags mean
 
 
@@ -32,7 +33,7 @@ def test_heldout_fold_never_uses_its_own_bag():
         for key, param in D.HELDOUT_KEYS.items():
             assert fold[param] == pytest.approx(np.mean([TABLE[b][key] for b in others]))
             assert fold[param] != pytest.approx(np.mean([TABLE[b][key] for b in TABLE]))  # not the all-bags value
-        assert "laser_offset_x" not in fold  # only the three calibrated values; the rest stay real_params.yaml's
+        assert "laser_offset_x" not in fold  # only the calibrated values; the rest stay real_params.yaml's
     assert sorted(calls) == ["bag1", "bag2", "bag3"]  # each bag calibrated once
 
 

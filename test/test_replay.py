@@ -156,10 +156,10 @@ def test_feed_scores_each_scan_with_the_estimate_at_its_time():
 # clutter); measured values with config/real_params.yaml are in docs/replay.md.
 REAL_AGREEMENT_MIN = {"bag1": 0.85, "bag2": 0.62, "bag3": 0.85}
 # Bounds against the independent yardstick (scan-to-map matches smoothed with odometry; the bags have
-# no ground truth): median and p95 position error, |mean along-track error|, in metres. The along-track
-# bound guards today's level: the filter trails the yardstick by 0.5-2.7 cm on these bags (the 2 cm
-# target is not met on bag2, docs/replay.md).
-REFERENCE_TARGETS = {"median": 0.05, "p95": 0.15, "along": 0.03}
+# no ground truth): median and p95 position error, |mean along-track error|, in metres. These are
+# training figures (real_params.yaml was calibrated on these bags) with a margin for the seed; the
+# held-out figures are localization-demo --only heldout's (docs/replay.md).
+REFERENCE_TARGETS = {"median": 0.04, "p95": 0.10, "along": 0.02}
 
 
 @pytest.mark.parametrize("name", sorted(REAL_BAGS))

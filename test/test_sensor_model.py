@@ -213,3 +213,34 @@ def test_fused_kernel_equals_numpy_with_a_short_z_max(tmp_path, monkeypatch):
         ref = sm.log_likelihood_numpy(particles, obs, angles, range_max=range_max)
         assert np.array_equal(np.isneginf(fast), np.isneginf(ref)) and np.isfinite(ref).sum() > 100
         np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-9)
+
+
+def test_wall_depth_scores_a_return_as_ending_that_far_behind_the_free_space_edge(tmp_path, monkeypatch):
+    """map_wall_depth o: a return z is scored as s·z − o; returns at z_max and no-returns stay max-range
+    readings; the fused kernel equals its numpy reference with it."""
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    m = long_corridor()
+    kw = {"ray_caster": "lookup_table", "scan_theta_discretization": 36, "laser_offset": (0.275, 0.01, 0.02),
+          "occupancy_map": m}
+    deep = SensorModel(lidar_scale_to_map_scale=0.99, map_wall_depth=0.03, **kw)
+    flat = SensorModel(lidar_scale_to_map_scale=0.99, **kw)
+    k = deep.z_max_row(LIDAR_5_6)
+    z = np.array([0.01, 1.0, 2.5, 5.0, LIDAR_5_6, np.inf, np.nan])
+    rows = deep.measured_to_cells(z, k)
+    assert rows.tolist() == flat.to_cells(np.array([0.0, 0.96, 2.445, 4.92, 0, 0, 0]), k)[:4].tolist() + [k, k, k]
+    assert rows.tolist() != flat.measured_to_cells(z, k).tolist()
+    rng = np.random.default_rng(5)
+    particles = np.column_stack([rng.uniform(0.5, 24.5, 300), rng.uniform(0.6, 2.4, 300), rng.uniform(-3, 3, 300)])
+    angles = np.linspace(-2.35, 2.35, 60)
+    obs = deep.expected_ranges(particles[:1], angles)[0] + rng.normal(0.0, 0.03, angles.size)
+    obs[::7] = np.inf
+    fast = deep.log_likelihood(particles, obs, angles, range_max=LIDAR_5_6)
+    ref = deep.log_likelihood_numpy(particles, obs, angles, range_max=LIDAR_5_6)
+    assert np.isfinite(ref).sum() > 100
+    np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-9)
+    # a scan whose returns end 3 cm behind the edge fits the true pose better with the depth than without
+    true = particles[:1]
+    seen = deep.expected_ranges(true, angles)[0]
+    behind = np.where(seen < LIDAR_5_6 - 0.1, (seen + 0.03) / 0.99, np.inf)
+    assert deep.log_likelihood(true, behind, angles, range_max=LIDAR_5_6)[0] > \
+        flat.log_likelihood(true, behind, angles, range_max=LIDAR_5_6)[0]

@@ -12,8 +12,8 @@ The corrected twist is constant over (t'_{k−1}, t'_k]. Past the newest message
 extrapolated for at most ``extrapolation`` seconds (then the robot is taken as standing: odometry
 that stopped does not drive the particles on). The oldest message's period has no known start:
 its twist holds for the same ``extrapolation`` before its stamp (a recording, or a node, that starts
-while the robot drives), and before that nothing is known (no motion). The localizer only extrapolates a scan that waited ``scan_max_wait`` for odometry in
-vain, and says so.
+while the robot drives), and before that nothing is known (no motion). The localizer only
+extrapolates a scan that waited ``scan_max_wait`` for odometry in vain, and says so.
 The motion between any two times is the composition of the constant-twist arcs
 (``geometry.integrate_twist``) of the pieces between them (``segments``, ``motion``); ``twist_at``
 is the twist holding at a time (the deskew of a sweep uses it).

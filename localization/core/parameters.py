@@ -185,6 +185,11 @@ PARAMETERS = [
           "in docs/performance.md); lookup_table_exact removes the smearing at a higher update cost",
           lambda v: isinstance(v, int) and 8 <= v <= 2048, "an integer in [8, 2048]"),
     Param("lidar_scale_to_map_scale", 1.0, "scale from lidar metres to map metres", _positive, "> 0"),
+    Param("map_wall_depth", 0.0, "how far (m) behind the map's free-space edge a lidar return ends on a wall: maps "
+          "draw walls a few cells thick and the surface lies inside them. The beam model scores each return as "
+          "s·z − map_wall_depth (s: lidar_scale_to_map_scale) against the ray cast to the edge; localization-calibrate "
+          "estimates it (\"wall surface ... behind the free-space edge\")",
+          lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
     Param("laser_offset_x", 0.275, "laser position ahead of base_link (m); racecar: 0.275", _finite, "finite"),
     Param("laser_offset_y", 0.0, "laser position left of base_link (m)", _finite, "finite"),
     Param("laser_offset_yaw", 0.0, "laser yaw relative to base_link (rad)", _finite, "finite"),

@@ -8,7 +8,8 @@ Every value is the correction the localizer applies (the parameters of the same 
 - ``odom_speed_scale`` a: speed used = a × reported (vx, vy);
 - ``odom_yaw_rate_scale`` b, ``odom_yaw_rate_bias`` c: yaw rate used = b × reported ωz + c;
 - ``laser_offset_x/y/yaw`` m = (m_x, m_y, m_ψ): the laser's pose in base_link;
-- ``lidar_scale_to_map_scale`` s: map metres per measured range unit.
+- ``lidar_scale_to_map_scale`` s: map metres per measured range unit;
+- ``map_wall_depth`` o (m): how far behind the map's free-space edge a return ends on a wall.
 
 1. The yardstick (``localization.eval.reference``) with the mount guess m₀: the scan-to-map matches
    Z_k of the scans it accepts (matched to the map alone: no odometry in them), as laser poses
@@ -21,8 +22,9 @@ Every value is the correction the localizer applies (the parameters of the same 
    edge: without o (or scoring endpoints on the occupied cells' centres) that constant depth is
    fitted as a scale, s ≈ 1 − o / r̃ (r̃ the median range: −0.7 % at 3 m). s and o are the medians
    over scans, each σ the larger of 1.2533 · std / √N and the spread of the medians of 10
-   consecutive blocks / √10 (neighbouring scans share walls). When s moves an endpoint at r̃ by more
-   than a quarter cell, |s − 1| r̃ > res/4, the yardstick is built again with ranges × s.
+   consecutive blocks / √10 (neighbouring scans share walls). When s and o move an endpoint at r̃ by
+   more than a quarter cell, |s − 1| r̃ + o > res/4, the yardstick is built again with returns s·r − o
+   (as the filter scores them).
 3. Slips and skids. Pairs (k, k') of accepted scans Δt ≈ 0.4 s apart; with the current fit (start:
    the yardstick's own a and δ), the scan-matched and the odometry's motion over the pair::
 
@@ -69,12 +71,13 @@ from localization.core.scan import beam_angles, clean_ranges
 from localization.eval.reference import ReferenceTrack, build_reference, odometry_inputs, read_odometry, read_scans
 
 KEYS = ("odom_time_offset_s", "odom_speed_scale", "odom_yaw_rate_scale", "odom_yaw_rate_bias", "laser_offset_x",
-        "laser_offset_y", "laser_offset_yaw", "lidar_scale_to_map_scale")
+        "laser_offset_y", "laser_offset_yaw", "lidar_scale_to_map_scale", "map_wall_depth")
 #: metrics key -> node parameter name
 PARAM_NAMES = {"odom_time_offset_s": "odom_time_offset", "odom_speed_scale": "odom_speed_scale",
                "odom_yaw_rate_scale": "odom_yaw_rate_scale", "odom_yaw_rate_bias": "odom_yaw_rate_bias",
                "laser_offset_x": "laser_offset_x", "laser_offset_y": "laser_offset_y",
-               "laser_offset_yaw": "laser_offset_yaw", "lidar_scale_to_map_scale": "lidar_scale_to_map_scale"}
+               "laser_offset_yaw": "laser_offset_yaw", "lidar_scale_to_map_scale": "lidar_scale_to_map_scale",
+               "map_wall_depth": "map_wall_depth"}
 
 PAIR_SPACING_S = 0.4
 SIGMA_XY = 0.01  # m: residual scale of a relative laser translation
@@ -412,9 +415,10 @@ def calibrate(scans, odom_t, twist, occupancy_map: OccupancyMap, initial_pose, m
     median_range = _median_range(scans)
     say(f"range scale {s:.5f} ± {s_sig:.5f}, wall surface {100 * o:.2f} ± {100 * o_sig:.2f} cm behind the "
         f"free-space edge ({n_s} scans)")
-    if abs(s - 1.0) * median_range > 0.25 * occupancy_map.resolution:
-        say("matching again with the range scale ...")
-        ref = build_reference(scans, occupancy_map, mount0, odom, initial_pose, range_scale=s, **kw)
+    if abs(s - 1.0) * median_range + max(o, 0.0) > 0.25 * occupancy_map.resolution:
+        say("matching again with the range scale and the wall surface ...")
+        ref = build_reference(scans, occupancy_map, mount0, odom, initial_pose, range_scale=s,
+                              wall_depth=float(np.clip(o, 0.0, 0.5)), **kw)
         lt, lp, ok = _matched_laser(ref, mount0)
     say(f"fitting odometry and mount on {len(lt)} matched scans ...")
     start = (ref.odometry.get("time_offset_s", 0.0), ref.odometry.get("speed_scale", 1.0))
@@ -422,8 +426,10 @@ def calibrate(scans, odom_t, twist, occupancy_map: OccupancyMap, initial_pose, m
     values = dict(zip(KEYS[:7], (float(v) for v in x)))
     values["laser_offset_yaw"] = float(wrap_angle(values["laser_offset_yaw"]))
     values["lidar_scale_to_map_scale"] = s
+    values["map_wall_depth"] = float(np.clip(o, 0.0, 0.5))  # the parameter's range: a return never ends before the edge
     unc = dict(zip(KEYS[:7], (float(v) for v in sig)))
     unc["lidar_scale_to_map_scale"] = s_sig
+    unc["map_wall_depth"] = o_sig
     return CalibrationResult(values=values, uncertainty=unc, scans=len(scans), good_scans=int(ok.sum()),
                              pairs=pairs, residual_rms=rms, rejected=rejected, channel_offsets=channels,
                              wall_surface={"offset_m": o, "sigma_m": o_sig}, yardstick=ref.summary())

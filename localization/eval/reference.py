@@ -363,8 +363,10 @@ class ScanBeams:
     beam_dt: np.ndarray | None  # s of each beam after the scan's time (mid-sweep); None: no sweep timing
 
 
-def scan_beams(scans, deskew: bool = True) -> list[ScanBeams]:
-    """The matcher's view of each scan; ``deskew`` False: no per-beam timing (a rigid scan)."""
+def scan_beams(scans, deskew: bool = True, shorten: float = 0.0) -> list[ScanBeams]:
+    """The matcher's view of each scan; ``deskew`` False: no per-beam timing (a rigid scan);
+    ``shorten`` (lidar metres) is taken off every return (the wall surface's depth behind the map's
+    free-space edge, over the range scale: s·(z − o/s) = s·z − o)."""
     cache: dict = {}
     out = []
     for s in scans:
@@ -376,7 +378,10 @@ def scan_beams(scans, deskew: bool = True) -> list[ScanBeams]:
         inc = float(angles[1] - angles[0]) if n > 1 else float(s.angle_increment)
         ti = sweep_increment(s) if deskew else 0.0
         beam_dt = (np.arange(n) - 0.5 * (n - 1)) * ti if ti > 0 else None
-        out.append(ScanBeams(clean_ranges(s.ranges, s.range_min, s.range_max), angles, inc, beam_dt))
+        ranges = clean_ranges(s.ranges, s.range_min, s.range_max)
+        if shorten:
+            ranges = np.maximum(ranges - shorten, 0.0)
+        out.append(ScanBeams(ranges, angles, inc, beam_dt))
     return out
 
 
@@ -591,12 +596,12 @@ def global_candidates(occupancy_map: OccupancyMap, beams: ScanBeams, mount, coun
 def track_matches(occupancy_map: OccupancyMap, scans, t, odometry, mount, initial_pose=None,
                   config: MatcherConfig | None = None, range_scale: float = 1.0,
                   noise: OdometryNoise | None = None, log=None, deskew: bool = True, twists=None,
-                  start_window=START_WINDOW, odometry_fit=(1.0, 0.0)) -> Matches:
+                  start_window=START_WINDOW, odometry_fit=(1.0, 0.0), wall_depth: float = 0.0) -> Matches:
     """Step 1 of the module doc for every scan (``t``: their times on the odometry's clock).
     ``twists`` (K, 3): deskew with these instead of the odometry's; ``odometry_fit``: (a, δ) for
-    the predictions (the second pass)."""
+    the predictions (the second pass); ``wall_depth`` (m): map_wall_depth."""
     say = log or (lambda *_: None)
-    beams = scan_beams(scans, deskew)
+    beams = scan_beams(scans, deskew, wall_depth / range_scale)
     K = len(beams)
     tracker = _Tracker(occupancy_map, mount, beams, np.asarray(t, dtype=float), odometry, config, range_scale,
                        noise or OdometryNoise(), odometry_fit)
@@ -1042,13 +1047,14 @@ class ReferenceTrack:
 def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial_pose=None,
                     config: MatcherConfig | None = None, range_scale: float = 1.0, scan_stamp: str = "first_beam",
                     scan_stamp_offset: float = 0.0, noise: OdometryNoise | None = None, second_pass: bool = True,
-                    log=None, deskew: bool = True) -> ReferenceTrack:
+                    log=None, deskew: bool = True, wall_depth: float = 0.0) -> ReferenceTrack:
     """The reference track of ``scans`` (``ScanData``) with ``odometry`` = (stamps (M,), reported
     twists (M, 3)) on the same clock, the laser at ``mount`` in base_link (module doc). The first
     scan is searched around ``initial_pose``, else globally. Scans with sweep timing are deskewed
     (``deskew``): in the first pass with the odometry's twist, in the second (``second_pass``: every
     scan matched again, gated on the prediction with the bag's own odometry noise) along the
-    smoothed track's own motion."""
+    smoothed track's own motion. ``range_scale`` and ``wall_depth`` (m) turn a return z into map
+    metres as the filter does: s·z − o (``lidar_scale_to_map_scale``, ``map_wall_depth``)."""
     say = log or (lambda *_: None)
     t = np.array([scan_time(s, scan_stamp, scan_stamp_offset) for s in scans], dtype=float)
     odo_t = np.asarray(odometry[0], dtype=float)
@@ -1058,7 +1064,8 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
     if len(scans) < 2 or len(odo[0]) < 2:
         raise ValueError(f"a reference track needs scans and odometry ({len(scans)} scans, {len(odo[0])} odometry)")
     noise = noise or OdometryNoise()
-    mt = track_matches(occupancy_map, scans, t, odo, mount, initial_pose, config, range_scale, noise, log, deskew)
+    mt = track_matches(occupancy_map, scans, t, odo, mount, initial_pose, config, range_scale, noise, log, deskew,
+                       wall_depth=wall_depth)
     say(f"matched {int(mt.usable.sum())} of {len(scans)} scans ({mt.start}); smoothing ...")
     if mt.usable.sum() < 3:
         say(f"reference track: only {int(mt.usable.sum())} scans matched the map ({mt.start}): nothing to score")
@@ -1074,7 +1081,7 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
             mt2 = track_matches(occupancy_map, scans[k_start:], t[k_start:], odo, mount, start, config, range_scale,
                                 noise2, log, deskew, twists=track_twists(t, sm.poses)[k_start:],
                                 start_window=START_WINDOW if initial_pose is not None else MIN_WINDOW,
-                                odometry_fit=tuple(sm.params))
+                                odometry_fit=tuple(sm.params), wall_depth=wall_depth)
             mt2.start = mt.start
             mt = _prepend(mt2, k_start, sm.poses[:k_start]) if k_start else mt2
             say(f"second pass: {int(mt.usable.sum())} of {len(scans)} scans matched")
@@ -1160,7 +1167,7 @@ def _unmatched(t, mt: Matches, mount, res: float) -> ReferenceTrack:
 def reference_for_bag(bag_path, occupancy_map: OccupancyMap, scan_topic: str, mount, *, odom_topic: str = "/odom",
                       initial_pose=None, config: MatcherConfig | None = None, range_scale: float = 1.0,
                       scan_stamp: str = "first_beam", scan_stamp_offset: float = 0.0, odom_frame: str = "odom",
-                      base_frame: str = "base_link", log=None) -> ReferenceTrack:
+                      base_frame: str = "base_link", log=None, wall_depth: float = 0.0) -> ReferenceTrack:
     """The reference track of a bag: its scans on ``scan_topic`` and its odometry (``odom_topic``,
     else TF ``odom_frame → base_frame``); raises BagError (one line) when either is missing."""
     from localization.bags import BagError
@@ -1170,7 +1177,7 @@ def reference_for_bag(bag_path, occupancy_map: OccupancyMap, scan_topic: str, mo
         raise BagError(f"bag {bag_path}: {len(scans)} scans on {scan_topic} and {len(odo[0])} odometry messages: "
                        "too few for a reference track")
     return build_reference(scans, occupancy_map, mount, odo, initial_pose, config, range_scale, scan_stamp,
-                           scan_stamp_offset, log=log)
+                           scan_stamp_offset, log=log, wall_depth=wall_depth)
 
 
 # --------------------------------------------------------------------------------------------

@@ -362,7 +362,8 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
                     odom_topic=opts.odom_topic or opts.params.odom_topic, odom_frame=params.odom_frame,
                     base_frame=params.base_frame,
                     initial_pose=log.initial_pose, range_scale=params.lidar_scale_to_map_scale,
-                    scan_stamp=params.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
+                    wall_depth=params.map_wall_depth, scan_stamp=params.scan_stamp,
+                    scan_stamp_offset=params.scan_stamp_offset,
                     log=say if opts.progress else None)
         except BagError as exc:
             raise ReplayError(str(exc)) from None

@@ -339,7 +339,8 @@ def build_bag_reference(bag: BagData, occupancy_map: OccupancyMap, params: Param
     ref = build_reference(scans, occupancy_map, (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
                           (np.array([e.stamp for e in odometry], dtype=float),
                            np.array([(e.vx, e.vy, e.wz) for e in odometry], dtype=float).reshape(-1, 3)),
-                          start, range_scale=params.lidar_scale_to_map_scale, scan_stamp=params.scan_stamp,
+                          start, range_scale=params.lidar_scale_to_map_scale, wall_depth=params.map_wall_depth,
+                          scan_stamp=params.scan_stamp,
                           scan_stamp_offset=params.scan_stamp_offset)
     t, poses = ref.good_track()
     if len(t) < MIN_REFERENCE_MATCHES:

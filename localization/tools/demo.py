@@ -20,7 +20,7 @@
 
 5. Held-out real-bag figures: each RSS 2022 bag replayed with the odometry and lidar calibration of
    the OTHER two bags (``localization-calibrate`` on each of them, the mean of its
-   ``odom_time_offset``, ``odom_speed_scale`` and ``lidar_scale_to_map_scale``; everything else
+   ``odom_time_offset``, ``odom_speed_scale``, ``lidar_scale_to_map_scale`` and ``map_wall_depth``; everything else
    from ``real_params.yaml``), next to the all-bags figures of step 2 (``real_params.yaml``, which
    was calibrated on all three, the held-out bag included). The error is against the yardstick
    (``localization.eval.reference``); the held-out table is the honest one. ``--only heldout``.
@@ -181,7 +181,7 @@ def real_table(results: list) -> str:
 
 #: calibration result name -> parameter, the values a held-out fold takes from the other bags' calibration
 HELDOUT_KEYS = {"odom_time_offset_s": "odom_time_offset", "odom_speed_scale": "odom_speed_scale",
-                "lidar_scale_to_map_scale": "lidar_scale_to_map_scale"}
+                "lidar_scale_to_map_scale": "lidar_scale_to_map_scale", "map_wall_depth": "map_wall_depth"}
 
 
 def heldout_folds(bags, calibrate) -> dict:
@@ -239,15 +239,17 @@ def calibrate_all(names, workers: int) -> dict:
 
 
 def calibration_table(values: dict, folds: dict) -> str:
-    lines = [f"{'bag':<6} {'calibrated alone':>40}   {'held-out fold (mean of the others)':>40}",
-             f"{'':<6} {'time offset':>12} {'speed scale':>12} {'range scale':>14}   "
-             f"{'time offset':>12} {'speed scale':>12} {'range scale':>14}"]
+    lines = [f"{'bag':<6} {'calibrated alone':>50}   {'held-out fold (mean of the others)':>50}",
+             f"{'':<6} {'time offset':>12} {'speed scale':>12} {'range scale':>12} {'wall depth':>11}   "
+             f"{'time offset':>12} {'speed scale':>12} {'range scale':>12} {'wall depth':>11}"]
     for name, fold in folds.items():
         v = values.get(name)
         own = (f"{v['odom_time_offset_s']:>+11.4f}s {v['odom_speed_scale']:>12.4f} "
-               f"{v['lidar_scale_to_map_scale']:>14.4f}" if v else f"{'(not calibrated)':>40}")
+               f"{v['lidar_scale_to_map_scale']:>12.4f} {100 * v['map_wall_depth']:>9.2f}cm" if v
+               else f"{'(not calibrated)':>50}")
         lines.append(f"{name:<6} {own}   {fold['odom_time_offset']:>+11.4f}s {fold['odom_speed_scale']:>12.4f} "
-                     f"{fold['lidar_scale_to_map_scale']:>14.4f}   (from {', '.join(fold['calibrated_on'])})")
+                     f"{fold['lidar_scale_to_map_scale']:>12.4f} {100 * fold['map_wall_depth']:>9.2f}cm   "
+                     f"(from {', '.join(fold['calibrated_on'])})")
     return "\n".join(lines)
 
 
@@ -514,14 +516,15 @@ def main(argv=None) -> int:
                   + f" {_f(sum(ok) / len(ok) if ok else None):>6}")
     if heldout_res:
         print("\nCalibration of each RSS 2022 bag (localization-calibrate) and the held-out folds: each bag's "
-              "odom_time_offset, odom_speed_scale, lidar_scale_to_map_scale = the mean over the other two")
+              "odom_time_offset, odom_speed_scale, lidar_scale_to_map_scale, map_wall_depth = the mean over the "
+              "other two")
         print(calibration_table(calibrated, folds))
         print(f"\nRSS 2022 bags vs the yardstick (scan-to-map reference track), error in metres; {n} particles, "
               f"seed {args.seed}, from the approximate start poses")
         print("all-bags parameters (config/real_params.yaml, calibrated on all three bags, this one included):")
         print(yardstick_table(real_res))
-        print("HELD-OUT (odometry timing, speed scale and range scale calibrated on the other two bags only; "
-              "the rest from real_params.yaml):")
+        print("HELD-OUT (odometry timing, speed scale, range scale and wall depth calibrated on the other two bags "
+              "only; the rest from real_params.yaml):")
         print(yardstick_table(heldout_res))
     if pioneer_res:
         print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "

@@ -29,10 +29,12 @@ they are scored by p_max. Expected ranges beyond z_max are clipped to it: a part
 open space beyond z_max expects a max-range reading. So a 5.6 m lidar's no-return beam supports a
 particle seeing no wall within 5.6 m, and counts against one seeing a wall at 3 m.
 
-Units: expected ranges are cast in map metres; measured ranges are lidar metres and become map
-metres times ``lidar_scale_to_map_scale`` (1 for a lidar and map that agree; the course's code
-divided both ranges by it, which only re-binned the table — here it is the correction
-``localization-calibrate`` estimates). Both are then binned at ``table_resolution``. The ray
+Units: expected ranges are cast in map metres, to the free-space edge; a measured range z (lidar
+metres) becomes z' = s·z − o in map metres, s = ``lidar_scale_to_map_scale`` (1 for a lidar and map
+that agree; the course's code divided both ranges by it, which only re-binned the table) and
+o = ``map_wall_depth``: maps draw walls a few cells thick, a beam ends on the real surface inside
+them, o behind the edge (0 by default; both are what ``localization-calibrate`` estimates). Returns
+at or beyond z_max stay there. Both ranges are then binned at ``table_resolution``. The ray
 caster casts no further than the table covers.
 
 With the lookup-table caster (the default) one compiled pass per particle does it all — laser
@@ -84,6 +86,7 @@ class BeamModelParams:
     num_beams_per_particle: int = default("num_beams_per_particle", course=True)
     scan_field_of_view: float = default("scan_field_of_view", course=True)  # rad
     lidar_scale_to_map_scale: float = default("lidar_scale_to_map_scale", course=True)
+    map_wall_depth: float = default("map_wall_depth", course=True)  # m: a return ends this far behind the free edge
     laser_offset_x: float = default("laser_offset_x", course=True)  # m, in base_link
     laser_offset_y: float = default("laser_offset_y", course=True)  # m
     laser_offset_yaw: float = default("laser_offset_yaw", course=True)  # rad
@@ -315,9 +318,16 @@ class BeamModel(LaserMount):
         return np.rint(np.clip(cells, 0, k)).astype(np.intp)
 
     def measured_to_cells(self, ranges, k: int | None = None) -> np.ndarray:
-        """Measured ranges (lidar metres) -> table rows in [0, k]: lidar_scale_to_map_scale turns lidar
-        metres into map metres (the correction ``localization-calibrate`` estimates)."""
-        return self.to_cells(np.asarray(ranges, dtype=float) * self.params.lidar_scale_to_map_scale, k)
+        """Measured ranges (lidar metres) -> table rows in [0, k]: s·z − o in map metres (s =
+        lidar_scale_to_map_scale, o = map_wall_depth: the corrections ``localization-calibrate``
+        estimates); returns at or beyond z_max (and no-returns) stay in row k."""
+        p = self.params
+        k = self.z_max if k is None else int(k)
+        z = np.asarray(ranges, dtype=float) * p.lidar_scale_to_map_scale
+        if p.map_wall_depth:
+            with np.errstate(invalid="ignore"):
+                z = np.where(z < (k - 0.5) * p.table_resolution, np.maximum(z - p.map_wall_depth, 0.0), z)
+        return self.to_cells(z, k)
 
     def _inputs(self, particles, observation, angles, offsets=None):
         if self.map is None:
