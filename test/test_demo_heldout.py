@@ -71,7 +71,11 @@ def test_converge_time_is_when_the_error_stays_below():
     err = np.array([3.0, 0.2, 0.9, 0.3, 0.2, 0.1, np.nan, 0.1, 0.2, 0.1])
     assert D.converge_time(t, err, 0.5, 0.0) == pytest.approx(3.0)  # 0.2 at t=1 does not count: 0.9 after it
     assert D.converge_time(t, err, 0.5, 2.5) == pytest.approx(0.5)
-    assert D.converge_time(t, np.r_[err[:-1], 0.8], 0.5, 0.0) is None  # never settles
+    # a later excursion does not undo a convergence that held for `hold` seconds ...
+    assert D.converge_time(t, np.r_[err[:-1], 0.8], 0.5, 0.0, hold=5.0) == pytest.approx(3.0)
+    # ... a shorter stay does not count
+    assert D.converge_time(t, np.r_[err[:-1], 0.8], 0.5, 0.0, hold=7.0) is None
+    assert D.converge_time(t, np.full(10, 0.9), 0.5, 0.0) is None  # never within
     assert D.converge_time(t, np.full(10, 0.1), 0.5, 0.0) == 0.0
 
 

@@ -21,6 +21,8 @@ from localization.core.scan import ScanData
 from localization.eval.datasets import REAL_BAGS, read_scans, real_bag, real_bag_path, sim_bag, trial_config
 from localization.eval.metrics import interpolate_poses
 from localization.eval.reference import (
+    FIT_NORMAL_PERCENTILE,
+    FIT_SHARE,
     best_lag,
     build_reference,
     constrained_axes,
@@ -29,7 +31,9 @@ from localization.eval.reference import (
     match_information,
     odometry_chain,
     odometry_chain_loop,
+    pose_fit,
     read_odometry,
+    scan_beams,
     track_errors,
 )
 from localization.sim import simulate
@@ -412,3 +416,18 @@ def test_real_bag_replay_reference_figures(tmp_path):
     assert m["reference_error_m"]["p95"] <= 0.30, m["reference_error_m"]
     assert abs(m["along_track_error_m"]["mean"]) <= 0.08, m["along_track_error_m"]
     assert m["abs_cross_track_error_m"]["median"] <= 0.05, m["abs_cross_track_error_m"]
+
+
+def test_pose_fit_scores_only_poses_where_the_scan_fits_the_map(trial1):
+    """The yardstick's fit check: at its smoothed poses the simulated scans fit the map (nothing left out
+    as poor fit); moved 0.4 m and 0.3 rad the same scans do not, and such poses would not be scored."""
+    cfg, m, rec = trial1
+    scans = _scans(cfg, rec)
+    ref = build_reference(scans, m, cfg.laser_offset, _odometry(rec), initial_pose=rec.initial_pose)
+    assert ref.fit is not None and np.nanmedian(ref.fit) > 0.9 and ref.counts["poor_fit"] == 0
+    assert ref.summary()["poor_fit_share"] == 0.0
+    beams = scan_beams(scans, False)
+    moved = compose(ref.poses, np.array([0.4, 0.4, 0.3]))
+    off = pose_fit(m, beams, moved, cfg.laser_offset)
+    assert np.nanmedian(off) < FIT_SHARE * np.percentile(ref.fit[ref.accepted], FIT_NORMAL_PERCENTILE)
+    assert np.isnan(pose_fit(m, beams[:1], np.full((1, 3), np.nan), cfg.laser_offset)[0])

@@ -80,8 +80,12 @@ convention ``scan_stamp`` / ``scan_stamp_offset``, scan clock), and gets a base 
    3 × 3 diagonal blocks (a sparse LU, solved block by block); with t̂ the direction of travel
    (the heading when standing) and n̂ ⊥ t̂: σ_along = (t̂ᵀ Σ_xy t̂)^½, σ_cross = (n̂ᵀ Σ_xy n̂)^½.
    A scan is *scored* (``good``) when both are at most one map cell, it lies within the span of
-   the accepted matches and its smoothed pose is in the map's known free space (a track that
-   crosses a wall has locked onto a look-alike place: counted as ``outside_free_space``).
+   the accepted matches, its smoothed pose is in the map's known free space (a track that
+   crosses a wall has locked onto a look-alike place: counted as ``outside_free_space``) and the
+   scan fits the map there (``pose_fit``: the share f_k of its returns ending within
+   FIT_TOLERANCE_M of the free-space edge is at least FIT_SHARE = ½ of the bag's normal fit, the
+   90th percentile of f over its accepted matches; else ``poor_fit``: a changed room, or a track
+   the odometry or a look-alike match carried off, where neither it nor anyone knows the truth).
 
 What it cannot see: an error the map shares (a wall drawn in the wrong place moves the track with
 it), a uniform offset of the whole track along a corridor no scan constrains, and where no match
@@ -112,7 +116,7 @@ from localization.core.matching.grids import signed_distance
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.scan import beam_angles, clean_ranges, scan_time, sweep_increment
 from localization.eval.datasets import bag_odometry, read_scans  # noqa: F401 - read_scans re-exported
-from localization.eval.metrics import interpolate_poses
+from localization.eval.metrics import FALSE_RECOVERY_M, false_recoveries, interpolate_poses
 
 LAG_SEARCH_S = 0.25  # ± seconds searched for the best lag
 LAG_STEP_S = 0.002
@@ -129,6 +133,9 @@ GLOBAL_HYPOTHESES = 8
 RELOCALIZE_SCANS = 5  # after a gap, matches away from the prediction are followed only when this many agree ...
 RELOCALIZE_GAP_S = 0.5  # s: ... a gap: this long without a match used
 RELOCALIZE_NOISE = 3.0  # ... with each other through the odometry, its σ × this
+FIT_TOLERANCE_M = 0.10  # m: a return "fits" when it ends this close to the map's free-space edge (as the agreement)
+FIT_SHARE = 0.5  # a scan is scored only where its smoothed pose fits at least this share of the bag's normal fit
+FIT_NORMAL_PERCENTILE = 90  # the bag's normal fit: this percentile over its accepted matches
 PARAM_NAMES = ("speed_scale", "time_offset_s")  # the odometry's unknowns (a, δ)
 NP = 1  # of them solved with the poses (a); δ by its profile (module doc, step 3)
 SCALE_PRIOR, SCALE_BOUNDS = 0.3, (0.5, 2.0)  # σ of the prior on a − 1; beyond the bounds the smoothing failed
@@ -1007,10 +1014,12 @@ class ReferenceTrack:
     usable: np.ndarray  # (K,) bool: a match entered the smoothing
     accepted: np.ndarray  # (K,) bool: ... and agrees with the smoothed track (χ² gate)
     constrained: np.ndarray  # (K, 5) bool: the accepted match pins x, y, θ, along, across
-    good: np.ndarray  # (K,) bool: scored (smoothed σ along and across ≤ one map cell, within the matches' span)
+    good: np.ndarray  # (K,) bool: scored (smoothed σ along and across ≤ one map cell, within the matches' span,
+    #                   in free space, and the scan fits the map there: ``fit``)
     odometry: dict = field(default_factory=dict)  # speed/yaw-rate scale, yaw-rate bias, time offset, with σ
     counts: dict = field(default_factory=dict)
     resolution: float = 0.05  # m, of the map
+    fit: np.ndarray | None = None  # (K,) share of the scan's returns ending within FIT_TOLERANCE_M of the edge
 
     def good_track(self) -> tuple[np.ndarray, np.ndarray]:
         return self.t[self.good], self.poses[self.good]
@@ -1041,6 +1050,7 @@ class ReferenceTrack:
                 "std_along_m": q(self.std_along), "std_cross_m": q(self.std_cross),
                 "scored_share": float(self.good.sum() / K),
                 "outside_free_space_share": float(self.counts.get("outside_free_space", 0) / K),
+                "poor_fit_share": float(self.counts.get("poor_fit", 0) / K),
                 "odometry": dict(self.odometry)}
 
 
@@ -1089,7 +1099,22 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
     except (ValueError, np.linalg.LinAlgError) as exc:
         say(f"reference track: {exc}; nothing to score")
         return _unmatched(t, mt, mount, occupancy_map.resolution)
-    return _track(t, mt, sm, mount, occupancy_map)
+    fit = pose_fit(occupancy_map, scan_beams(scans, False, wall_depth / range_scale), sm.poses, mount, range_scale)
+    return _track(t, mt, sm, mount, occupancy_map, fit)
+
+
+def pose_fit(occupancy_map: OccupancyMap, beams: list[ScanBeams], poses, mount, range_scale: float = 1.0) -> np.ndarray:
+    """(K,) share of each scan's returns whose endpoint, seen from ``poses[k]``, lies within
+    FIT_TOLERANCE_M of the map's free-space edge (NaN: no return or no pose)."""
+    out = np.full(len(beams), np.nan)
+    for k, (b, pose) in enumerate(zip(beams, np.asarray(poses, dtype=float))):  # one vectorised call per scan
+        if not np.all(np.isfinite(pose)):
+            continue
+        q, _ = endpoints_base(b.ranges, b.angles, mount, range_scale)
+        if len(q):
+            d, _ = edge_distance(occupancy_map, compose(pose, np.column_stack([q, np.zeros(len(q))]))[:, :2])
+            out[k] = float(np.mean(np.abs(d) <= FIT_TOLERANCE_M))
+    return out
 
 
 def track_twists(t, poses) -> np.ndarray:
@@ -1119,7 +1144,7 @@ def _directions(t, poses) -> np.ndarray:
     return d
 
 
-def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap) -> ReferenceTrack:
+def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit=None) -> ReferenceTrack:
     res = occupancy_map.resolution
     K = len(t)
     d = _directions(t, sm.poses)
@@ -1135,7 +1160,13 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap) -> 
     if acc.size:
         inside[acc[0]:acc[-1] + 1] = True
     free = occupancy_map.is_free(sm.poses[:, :2])  # a smoothed pose in a wall: the track is wrong there
-    good = inside & free & (std_along <= res) & (std_cross <= res)
+    # the scan must fit the map at the smoothed pose: half the bag's normal fit or more (a changed room, or a
+    # track carried off by the odometry or a look-alike match, is not a pose to score against)
+    fit = np.full(K, np.nan) if fit is None else np.asarray(fit, dtype=float)
+    normal = fit[sm.accepted & np.isfinite(fit)]
+    fits = np.ones(K, dtype=bool) if normal.size == 0 else \
+        np.nan_to_num(fit, nan=0.0) >= FIT_SHARE * np.percentile(normal, FIT_NORMAL_PERCENTILE)
+    good = inside & free & fits & (std_along <= res) & (std_cross <= res)
     odometry = {n: float(v) for n, v in zip(PARAM_NAMES, sm.params)}
     odometry.update({f"{n}_sigma": float(v) for n, v in zip(PARAM_NAMES, sm.param_sigma)})
     odometry["noise_scales"] = {k: float(v) for k, v in sm.scales.items()}
@@ -1143,13 +1174,13 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap) -> 
               "accepted": int(sm.accepted.sum()), "rejected": int((mt.usable & ~sm.accepted).sum()),
               "ambiguous": int((sm.accepted & ~np.all(constrained[:, 3:5], axis=1)).sum()),
               "low_score": int((mt.usable & ~sm.accepted).sum()), "unmatched": int((~mt.usable).sum()),
-              "outside_free_space": int((~free).sum()),
+              "outside_free_space": int((~free).sum()), "poor_fit": int((~fits).sum()),
               "start": mt.start, "function_evaluations": sm.nfev}
     return ReferenceTrack(t=t, poses=sm.poses, laser_poses=compose(sm.poses, np.asarray(mount, dtype=float)),
                           matched=np.where(mt.usable[:, None], mt.poses, np.nan), information=mt.information,
                           covariance=sm.covariance, std_along=std_along, std_cross=std_cross, score=mt.score,
                           usable=mt.usable, accepted=sm.accepted, constrained=constrained, good=good,
-                          odometry=odometry, counts=counts, resolution=res)
+                          odometry=odometry, counts=counts, resolution=res, fit=fit)
 
 
 def _unmatched(t, mt: Matches, mount, res: float) -> ReferenceTrack:
@@ -1294,6 +1325,8 @@ def reference_metrics(ref: ReferenceTrack, est_t, est_poses, truth_t=None, truth
         "reference_ambiguous": ref.counts.get("ambiguous", 0),
         "reference_low_score": ref.counts.get("low_score", 0) + ref.counts.get("unmatched", 0),
         "reference_scored": int(err.t.size),
+        # times the estimate went to another place: runs of scored scans > FALSE_RECOVERY_M from the yardstick
+        "reference_false_recoveries": false_recoveries(err.t, err.position, FALSE_RECOVERY_M),
         "reference_score_median": float(np.nanmedian(ref.score)) if np.isfinite(ref.score).any() else None,
         "reference_yardstick": ref.summary(),
     }

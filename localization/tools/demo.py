@@ -260,16 +260,18 @@ def yardstick_table(results: list) -> str:
         along = (m.get("along_track_error_m") or {}).get("mean")
         return (f"{name:<6} {_f(ref.get('median')):>7} {_f(ref.get('p95')):>6} "
                 f"{'n/a' if along is None else f'{along:+.3f}':>11} {_f(ref.get('max')):>6} "
-                f"{_f(m['scan_map_agreement']['median']):>9} {m.get('reference_scored', 0):>7}")
+                f"{_f(m['scan_map_agreement']['median']):>9} {m.get('reference_scored', 0):>7} "
+                f"{m.get('recoveries', 0):>6} {m.get('reference_false_recoveries', 0):>6}")
     return _table(f"{'bag':<6} {'median':>7} {'p95':>6} {'mean along':>11} {'max':>6} {'agreement':>9} "
-                  f"{'scored':>7}", results, 6, row)
+                  f"{'scored':>7} {'recov':>6} {'false':>6}", results, 6, row)
 
 
 # --------------------------------------------------------------------------------------------
 # The Pioneer bags (step 6)
 # --------------------------------------------------------------------------------------------
 
-CONVERGED_M = 0.5  # m: converged once the estimate stays this close to the yardstick's confident poses
+CONVERGED_M = 0.5  # m: converged once the estimate stays this close to the yardstick's confident poses ...
+CONVERGED_HOLD_S = 5.0  # s: ... for this long
 EARLY_REFERENCE_S = 10.0  # s: the yardstick must be confident this soon after the start to time convergence
 HEALTHY_AGREEMENT = 0.8  # else: converged at the first scan whose agreement reaches this
 
@@ -287,17 +289,23 @@ class StatusCounter:
         self.holding += int(localizer.status == HOLDING)
 
 
-def converge_time(t, err, threshold: float, t_start: float):
-    """Seconds from ``t_start`` to the first time from which ``err`` stays ≤ ``threshold`` (None:
-    never; NaN errors are not scored)."""
+def converge_time(t, err, threshold: float, t_start: float, hold: float = CONVERGED_HOLD_S):
+    """Seconds from ``t_start`` to the first time t_i from which ``err`` stays ≤ ``threshold`` for
+    ``hold`` seconds, or to the end of the series if that comes sooner (None: never; NaN errors are
+    not scored)."""
     t, err = np.asarray(t, dtype=float), np.asarray(err, dtype=float)
     ok = np.isfinite(err)
     t, err = t[ok], err[ok]
-    if t.size == 0 or err[-1] > threshold:
+    if t.size == 0:
         return None
-    bad = np.flatnonzero(err > threshold)
-    first = 0 if bad.size == 0 else bad[-1] + 1
-    return float(max(t[first] - t_start, 0.0))
+    bad = err > threshold
+    # next_bad[i]: time of the first bad sample at or after i (inf: none)
+    bad_t = np.where(bad, t, np.inf)
+    next_bad = np.minimum.accumulate(bad_t[::-1])[::-1]
+    good = ~bad & ((next_bad - t >= hold) | ~np.isfinite(next_bad))
+    if not good.any():
+        return None
+    return float(max(t[np.argmax(good)] - t_start, 0.0))
 
 
 def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
@@ -321,9 +329,13 @@ def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
             conf_agree = float(np.median(res.agreement[idx[near]])) if near.any() else None
         out["confident_scans"] = int(ref.good.sum())
         out["error_vs_yardstick_median_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None
-        far = np.flatnonzero(err > CONVERGED_M)  # where the estimate is off (for the report: when, how long)
-        out["off_share"] = float(far.size / max(np.isfinite(err).sum(), 1))
+        since = rt >= t0 + (conv if conv is not None else np.inf)  # once converged
+        far = np.flatnonzero(since & (err > CONVERGED_M))  # where the estimate is off (when, how long)
+        out["off_share"] = float(far.size / max(np.count_nonzero(since & np.isfinite(err)), 1)) \
+            if conv is not None else None
         out["last_off_s"] = float(rt[far[-1]] - t0) if far.size else None
+        out["false_recoveries"] = M.false_recoveries(rt[since], err[since], M.FALSE_RECOVERY_M, 0.0) \
+            if conv is not None else None
     if how is None:
         hit = np.flatnonzero(np.asarray(res.agreement) >= HEALTHY_AGREEMENT)
         conv = float(res.agreement_t[hit[0]] - t0) if hit.size else None
@@ -347,11 +359,13 @@ def pioneer_table(results: list) -> str:
         return (f"{name:<9} {start:<13} {'never' if conv is None else f'{conv:.1f} s':>9} "
                 f"{pm.get('converge_by', ''):<16} {pm.get('max_jump_m', 0.0):>7.2f}m "
                 f"{_f(pm.get('max_jump_after_converge_m')):>10} {pm.get('recoveries', 0):>5} "
+                f"{'n/a' if pm.get('false_recoveries') is None else pm['false_recoveries']:>5} "
                 f"{_f(pm.get('confident_agreement_median')):>9} {_f(pm.get('error_vs_yardstick_median_m')):>7} "
+                f"{_f(pm.get('off_share')):>6} "
                 f"{_f(pm.get('holding_share')):>8} {_f(pm.get('health_lost_share')):>8}")
     return _table(f"{'bag':<9} {'start':<13} {'converge':>9} {'(by)':<16} {'max jump':>8} {'after conv':>10} "
-                  f"{'recov':>5} "
-                  f"{'agreement':>9} {'ref med':>7} {'disagree':>8} {'health<':>8}", results, 9, row)
+                  f"{'recov':>5} {'false':>5} "
+                  f"{'agreement':>9} {'ref med':>7} {'off':>6} {'disagree':>8} {'health<':>8}", results, 9, row)
 
 
 ONLY = ("heldout", "pioneer")
@@ -528,10 +542,13 @@ def main(argv=None) -> int:
         print(yardstick_table(heldout_res))
     if pioneer_res:
         print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "
-              f"first time from which the estimate stays within {CONVERGED_M} m of the yardstick's confident poses "
+              f"first time from which the estimate stays within {CONVERGED_M} m of the yardstick's confident poses for "
+              f"{CONVERGED_HOLD_S:.0f} s "
               f"(or, without a confident pose in the first {EARLY_REFERENCE_S:.0f} s, the first agreement >= "
               f"{HEALTHY_AGREEMENT}); after conv = largest jump between consecutive estimates once converged; "
-              "recov = recoveries (a challenger replaced the cloud, or an impossible cloud was re-spread); "
+              "recov = recoveries (a challenger replaced the cloud, or an impossible cloud was re-spread); false = "
+              "times the estimate went to a place > 1 m from the yardstick once converged; off = share of confident "
+              f"scans > {CONVERGED_M} m from the yardstick once converged; "
               "agreement = median scan-map agreement where the "
               "yardstick is confident; ref med = median error vs the yardstick there (m); disagree = share of scans "
               "after which Localizer.status said the scans disagree with the map; health< = share of sensor "
