@@ -23,6 +23,7 @@ from localization.eval.metrics import interpolate_poses
 from localization.eval.reference import (
     FIT_NORMAL_PERCENTILE,
     FIT_SHARE,
+    OdometryNoise,
     best_lag,
     build_reference,
     constrained_axes,
@@ -31,6 +32,7 @@ from localization.eval.reference import (
     match_information,
     odometry_chain,
     odometry_chain_loop,
+    odometry_consistency,
     pose_fit,
     read_odometry,
     scan_beams,
@@ -431,3 +433,22 @@ def test_pose_fit_scores_only_poses_where_the_scan_fits_the_map(trial1):
     off = pose_fit(m, beams, moved, cfg.laser_offset)
     assert np.nanmedian(off) < FIT_SHARE * np.percentile(ref.fit[ref.accepted], FIT_NORMAL_PERCENTILE)
     assert np.isnan(pose_fit(m, beams[:1], np.full((1, 3), np.nan), cfg.laser_offset)[0])
+
+
+def test_odometry_consistency_flags_a_track_that_stops_following_the_odometry():
+    """1 m/s straight for 20 s by the odometry; a track that stalls for 4 s (wrong matches holding it) is
+    inconsistent around the stall; a track that slides on while the odometry reads 0 (wheels locked) is a skid."""
+    t = np.arange(0.0, 20.0, 0.1)
+    odo = (t.copy(), np.column_stack([np.ones_like(t), np.zeros_like(t), np.zeros_like(t)]))
+    x = t.copy()
+    track = np.column_stack([x, np.zeros_like(t), np.zeros_like(t)])
+    noise = OdometryNoise()
+    ok, skid = odometry_consistency(t, track, odo, 1.0, 0.0, noise, 0.05)
+    assert ok.all() and not skid.any()
+    stalled = track.copy()
+    stalled[:, 0] = np.where(t < 8.0, t, np.where(t < 12.0, 8.0, t - 4.0))  # stands still 8-12 s, then 4 m behind
+    ok, skid = odometry_consistency(t, stalled, odo, 1.0, 0.0, noise, 0.05)
+    assert not ok[(t > 8.5) & (t < 11.5)].any() and ok[t < 3.0].all() and not skid.any()
+    locked = (t.copy(), np.column_stack([np.where(t < 16.0, 1.0, 0.0), np.zeros_like(t), np.zeros_like(t)]))
+    ok, skid = odometry_consistency(t, track, locked, 1.0, 0.0, noise, 0.05)  # the track slides on past 16 s
+    assert not ok[t > 17.0].all() and skid[t > 17.0].all() and ok[t < 10.0].all()

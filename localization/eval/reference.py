@@ -85,7 +85,17 @@ convention ``scan_stamp`` / ``scan_stamp_offset``, scan clock), and gets a base 
    scan fits the map there (``pose_fit``: the share f_k of its returns ending within
    FIT_TOLERANCE_M of the free-space edge is at least FIT_SHARE = ½ of the bag's normal fit, the
    90th percentile of f over its accepted matches; else ``poor_fit``: a changed room, or a track
-   the odometry or a look-alike match carried off, where neither it nor anyone knows the truth).
+   the odometry or a look-alike match carried off, where neither it nor anyone knows the truth),
+   and the track follows the odometry there (``odometry_consistency``: over every window of
+   CONSISTENCY_WINDOW_S = 4 s, scans k → j, the distance the smoothed track covers, |X_k⁻¹ ⊕ X_j|_xy,
+   may differ from the odometry's |Ô_xy| (at the fitted a, δ) by at most 3 σ_xy(Ô) (the noise model
+   above, with the bag's own scales) + one map cell (distances, not vectors: a yaw-rate scale,
+   which the smoothing does not fit, bends the odometry's path); every scan of a window that does
+   not is ``inconsistent`` and not scored — unless the odometry covered less than the track and
+   the scan fits the map there nearly as well as normal (f_k ≥ CONSISTENCY_FIT_SHARE = 0.85 of the
+   normal fit): a braking skid, wheels locked while the robot slides on, and the matches are right.
+   Wrong matches in a changed room can drag the smoothed track metres away from where the odometry
+   says the robot went, and back in one step when the matches are right again).
 
 What it cannot see: an error the map shares (a wall drawn in the wrong place moves the track with
 it), a uniform offset of the whole track along a corridor no scan constrains, and where no match
@@ -136,6 +146,9 @@ RELOCALIZE_NOISE = 3.0  # ... with each other through the odometry, its σ × th
 FIT_TOLERANCE_M = 0.10  # m: a return "fits" when it ends this close to the map's free-space edge (as the agreement)
 FIT_SHARE = 0.5  # a scan is scored only where its smoothed pose fits at least this share of the bag's normal fit
 FIT_NORMAL_PERCENTILE = 90  # the bag's normal fit: this percentile over its accepted matches
+CONSISTENCY_WINDOW_S = 4.0  # s: the smoothed track must follow the odometry over windows this long ...
+CONSISTENCY_SIGMAS = 3.0  # ... within this many σ of the odometry's noise (as the bag measured it) plus a map cell,
+CONSISTENCY_FIT_SHARE = 0.85  # ... unless the odometry covered less and the scan fits this share of the normal fit
 PARAM_NAMES = ("speed_scale", "time_offset_s")  # the odometry's unknowns (a, δ)
 NP = 1  # of them solved with the poses (a); δ by its profile (module doc, step 3)
 SCALE_PRIOR, SCALE_BOUNDS = 0.3, (0.5, 2.0)  # σ of the prior on a − 1; beyond the bounds the smoothing failed
@@ -1051,6 +1064,7 @@ class ReferenceTrack:
                 "scored_share": float(self.good.sum() / K),
                 "outside_free_space_share": float(self.counts.get("outside_free_space", 0) / K),
                 "poor_fit_share": float(self.counts.get("poor_fit", 0) / K),
+                "odometry_inconsistent_share": float(self.counts.get("odometry_inconsistent", 0) / K),
                 "odometry": dict(self.odometry)}
 
 
@@ -1100,7 +1114,43 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
         say(f"reference track: {exc}; nothing to score")
         return _unmatched(t, mt, mount, occupancy_map.resolution)
     fit = pose_fit(occupancy_map, scan_beams(scans, False, wall_depth / range_scale), sm.poses, mount, range_scale)
-    return _track(t, mt, sm, mount, occupancy_map, fit)
+    odo_noise = noise.scaled(sm.scales["odo_x"], sm.scales["odo_y"], sm.scales["odo_theta"])
+    consistent, skid = odometry_consistency(t, sm.poses, odo, sm.params[0], sm.params[1], odo_noise,
+                                            occupancy_map.resolution)
+    return _track(t, mt, sm, mount, occupancy_map, fit, consistent, skid)
+
+
+def odometry_consistency(t, poses, odometry, speed_scale: float, offset: float, noise: OdometryNoise,
+                         tolerance: float, window: float = CONSISTENCY_WINDOW_S) -> tuple[np.ndarray, np.ndarray]:
+    """Two (K,) bool arrays: (consistent) no window of ``window`` s containing scan k has the track
+    ``poses`` cover a distance different from the odometry's by more than CONSISTENCY_SIGMAS σ +
+    ``tolerance`` (m); (skid) every such window has the odometry covering less (module doc)."""
+    t = np.asarray(t, dtype=float)
+    poses = np.asarray(poses, dtype=float)
+    K = len(t)
+    if K < 2:
+        return np.ones(K, dtype=bool), np.zeros(K, dtype=bool)
+    B = dead_reckon(odometry[0], odometry[1], t - offset, speed_scale)
+    k = np.arange(K)
+    j = np.minimum(np.searchsorted(t, t + window), K - 1)
+    pairs = j > k
+    k, j = k[pairs], j[pairs]
+    pred = relative(B[k], B[j])
+    got = relative(poses[k], poses[j])
+    sig = noise.sigmas(pred, t[j] - t[k])
+    # the distance covered (chord), not the displacement vector: a yaw-rate scale the yardstick does not fit
+    # bends the odometry's path, it hardly changes how far the robot got
+    excess = np.hypot(got[:, 0], got[:, 1]) - np.hypot(pred[:, 0], pred[:, 1])  # > 0: the odometry covered less
+    gate = CONSISTENCY_SIGMAS * np.hypot(sig[:, 0], sig[:, 1]) + tolerance
+
+    def scans_of(windows):  # every scan k..j of the given windows
+        marks = np.zeros(K + 1, dtype=np.int64)
+        np.add.at(marks, k[windows], 1)
+        np.add.at(marks, j[windows] + 1, -1)
+        return np.cumsum(marks)[:K] > 0
+    lagging = scans_of(excess < -gate)
+    skidding = scans_of(excess > gate)
+    return ~(lagging | skidding), skidding & ~lagging
 
 
 def pose_fit(occupancy_map: OccupancyMap, beams: list[ScanBeams], poses, mount, range_scale: float = 1.0) -> np.ndarray:
@@ -1144,7 +1194,8 @@ def _directions(t, poses) -> np.ndarray:
     return d
 
 
-def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit=None) -> ReferenceTrack:
+def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit=None,
+           consistent=None, skid=None) -> ReferenceTrack:
     res = occupancy_map.resolution
     K = len(t)
     d = _directions(t, sm.poses)
@@ -1166,7 +1217,11 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit
     normal = fit[sm.accepted & np.isfinite(fit)]
     fits = np.ones(K, dtype=bool) if normal.size == 0 else \
         np.nan_to_num(fit, nan=0.0) >= FIT_SHARE * np.percentile(normal, FIT_NORMAL_PERCENTILE)
-    good = inside & free & fits & (std_along <= res) & (std_cross <= res)
+    consistent = np.ones(K, dtype=bool) if consistent is None else np.asarray(consistent, dtype=bool)
+    if normal.size and skid is not None:  # a skid: the odometry stopped short where the scans fit as they normally do
+        consistent = consistent | (np.asarray(skid, dtype=bool) & (
+            np.nan_to_num(fit, nan=0.0) >= CONSISTENCY_FIT_SHARE * np.percentile(normal, FIT_NORMAL_PERCENTILE)))
+    good = inside & free & fits & consistent & (std_along <= res) & (std_cross <= res)
     odometry = {n: float(v) for n, v in zip(PARAM_NAMES, sm.params)}
     odometry.update({f"{n}_sigma": float(v) for n, v in zip(PARAM_NAMES, sm.param_sigma)})
     odometry["noise_scales"] = {k: float(v) for k, v in sm.scales.items()}
@@ -1175,6 +1230,7 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit
               "ambiguous": int((sm.accepted & ~np.all(constrained[:, 3:5], axis=1)).sum()),
               "low_score": int((mt.usable & ~sm.accepted).sum()), "unmatched": int((~mt.usable).sum()),
               "outside_free_space": int((~free).sum()), "poor_fit": int((~fits).sum()),
+              "odometry_inconsistent": int((~consistent).sum()),
               "start": mt.start, "function_evaluations": sm.nfev}
     return ReferenceTrack(t=t, poses=sm.poses, laser_poses=compose(sm.poses, np.asarray(mount, dtype=float)),
                           matched=np.where(mt.usable[:, None], mt.poses, np.nan), information=mt.information,
