@@ -132,13 +132,7 @@ def test_the_filter_tracks_a_2mps_drive_in_the_standard_perturbed_world():
 def test_no_false_recovery_at_scale_1_02():
     r = localize(drive(replace(WORLD, scale=1.02)))
     assert r["recoveries"] == 0 and r["false_recoveries"] == 0
-    assert r["map"] <= 0.05  # tracks, but not within the 0.03 target (next test)
-
-
-@pytest.mark.xfail(strict=True, reason="the world's ranges are s times the map's (a range-scale conflict the "
-                   "filter does not estimate): the estimate lags along the track; see docs/performance.md")
-def test_the_map_frame_target_at_scale_1_02():
-    assert localize(drive(replace(WORLD, scale=1.02)))["map"] <= 0.03
+    assert r["map"] <= 0.05  # tracks, but not within 0.03 without the range scale (docs/performance.md)
 
 
 def test_a_calibrated_range_scale_removes_the_conflict_at_scale_1_02():
