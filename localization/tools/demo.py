@@ -516,7 +516,7 @@ def main(argv=None) -> int:
         print(f"\nReal RSS 2022 bags (basement_fixed, config/real_params.yaml, {n} particles, from the approximate "
               "start poses): agreement = median fraction of beams ending within 0.10 m of a wall; error vs the "
               "reference track (scan-to-map matches, no ground truth) in metres: median, p95, max, mean along-track "
-              "(targets: median <= 0.05, p95 <= 0.15, |along| <= 0.02)")
+              "(targets: median <= 0.035, p95 <= 0.08, |along| <= 0.02)")
         print(real_table(real_res))
     if sweep_res:
         print("\nReal bags: median scan-map agreement vs motion noise (real_params.yaml's motion_* scaled by)")
