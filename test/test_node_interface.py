@@ -32,6 +32,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from localization.core import pose_store  # noqa: E402
 from localization.core.geometry import yaw_to_quaternion  # noqa: E402
+from localization.core.recovery import TRACKING  # noqa: E402
 from localization.core.watchdog import ERROR, OK, WARN, ProblemLog, Watchdog  # noqa: E402
 from localization.ros.conversions import pose_from_msg  # noqa: E402
 from localization.ros.messages import diagnostic_array_msg  # noqa: E402
@@ -71,6 +72,21 @@ def test_watchdog_missing_scans_map_tf_and_failures():
     st = w.status(4.2, ready=False, waiting_for="a map")
     assert st.level == ERROR and "bad table" in st.message
     assert st.values["state"] == "waiting for a map"
+
+
+def test_watchdog_warns_while_the_scans_disagree_with_the_map():
+    w = Watchdog(0.0, health_lost_floor=0.25)
+    w.map_ready(0.0)
+    for k in range(40):
+        w.scan_received(k * 0.025)
+        w.odom_received(k * 0.025)
+    assert w.status(1.0, ready=True, health=0.9).level == OK
+    st = w.status(1.0, ready=True, health=0.4, holding=True)  # holding on odometry, above the lost floor
+    assert st.level == WARN and st.problems[0].key == "disagree" and "scans disagree with the map" in st.message
+    assert "0.40" in st.message
+    st = w.status(1.0, ready=True, health=0.1, holding=True)  # and below the floor: ERROR first, the WARN with it
+    assert st.level == ERROR and [p.key for p in st.problems][:2] == ["lost", "disagree"]
+    assert w.status(1.0, ready=False, holding=True).level == OK  # not localizing: nothing to disagree with
 
 
 def test_watchdog_rates_and_latency_and_problem_log():
@@ -191,6 +207,31 @@ def test_laser_pose_from_tf_static(runner, drive):
     r.play(drive.until(0.2))
     assert np.allclose(r.node.localizer.laser_offset, [0.31, 0.02, 0.05], atol=1e-6)
     assert r.node.diagnostic_status().values["laser pose"].startswith("TF")
+
+
+def test_scans_that_disagree_with_the_map_are_a_diagnostics_warning(runner, drive):
+    """Localizing on the drive, then scans of a 0.6 m ring (nothing like the corridor): the localizer
+    holds its pose on odometry and /diagnostics says the scans disagree with the map."""
+    import copy
+    r = runner(health_lost_updates=3, ray_caster="lookup_table")  # the map search of a lost filter: fast enough
+    r.send_map(h.map_msg("stata_basement"))
+    assert h.wait_until(lambda: r.node.localizer.has_map, 60.0)
+    r.send_initialpose(h.initialpose_msg(drive.initial_guess))
+    r.settle(0.3)
+    events = drive.until(2.0)
+    half = len(events) // 2
+    r.play(events[:half])
+    assert r.node.localizer.status == TRACKING
+    assert "disagree" not in {p.key for p in r.node.diagnostic_status().problems}
+    for _, kind, msg in events[half:]:
+        if kind == "scan":
+            msg = copy.deepcopy(msg)
+            msg.ranges = [0.6] * len(msg.ranges)
+        (r.send_odom if kind == "odom" else r.send_scan)(msg)
+    assert h.wait_until(lambda: r.node.localizer.status != TRACKING, 5.0)
+    st = r.node.diagnostic_status()
+    assert st.level >= WARN and "disagree" in {p.key for p in st.problems}, st.message
+    assert "scans disagree with the map" in st.message
 
 
 def play_past_tf_timeout(r, drive):

@@ -18,6 +18,8 @@ Checks (``t_x`` = seconds since the last x, or since the reference when x never 
     TF            the laser pose lookup failed for longer than tf_timeout           → WARN
     scans dropped a scan was not used (no map, range table being built, no initial
                   pose, sensor-update queue full) in the last ``window`` seconds     → WARN
+    disagree      localizing and the localizer holds its pose on odometry because the
+                  scans disagree with the map (``Localizer.status``)                  → WARN
     lost          localizing and health < health_lost_floor                       → ERROR
     map failed    the map was rejected or its range table could not be built       → ERROR
 
@@ -195,12 +197,16 @@ class Watchdog:
         return len(self._updates) / span
 
     def problems(self, now: float, *, ready: bool = False, waiting_for: str = "", health: float = math.nan,
-                 odom_topics=(), scan_topics=()) -> list:
+                 odom_topics=(), scan_topics=(), holding: bool = False) -> list:
         out = []
         self._trim(now)
         if ready and math.isfinite(health) and health < self.health_lost_floor:
             out.append(Problem("lost", ERROR, f"lost: scan-map agreement {health:.2f} is below health_lost_floor "
                                f"{self.health_lost_floor:.2f} (the scans do not match the map at the estimate)"))
+        if ready and holding:
+            agreement = "" if not math.isfinite(health) else f" (scan-map agreement {health:.2f})"
+            out.append(Problem("disagree", WARN, f"scans disagree with the map{agreement}: holding the pose on "
+                               "odometry, searching the map for a place the scans fit"))
         if self._drops:
             reasons = Counter()
             for _, count, reason in self._drops:
@@ -244,9 +250,9 @@ class Watchdog:
         return out
 
     def status(self, now: float, *, ready: bool, waiting_for: str = "", health: float = math.nan,
-               particles: int = 0, dropped: int = 0, odom_topics=(), scan_topics=()) -> Status:
+               particles: int = 0, dropped: int = 0, odom_topics=(), scan_topics=(), holding: bool = False) -> Status:
         problems = self.problems(now, ready=ready, waiting_for=waiting_for, health=health, odom_topics=odom_topics,
-                                 scan_topics=scan_topics)
+                                 scan_topics=scan_topics, holding=holding)
         level = problems[0].level if problems else OK
         if problems:
             message = "; ".join(p.message for p in problems)

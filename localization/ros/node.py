@@ -68,6 +68,7 @@ from localization.core import pose_store
 from localization.core.localizer import Localizer, PoseEstimate
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.parameters import NODE_NAME, PARAMETERS, ParameterError
+from localization.core.recovery import TRACKING
 from localization.core.watchdog import LEVEL_NAMES, ProblemLog, Watchdog
 from localization.ros import messages
 from localization.ros.conversions import (
@@ -524,7 +525,7 @@ class LocalizationMixin:
         loc = self.localizer
         status = self.watchdog.status(
             time.monotonic(), ready=loc.ready, waiting_for=self.waiting_for(), health=loc.health,
-            particles=loc.num_particles,
+            particles=loc.num_particles, holding=loc.status != TRACKING,
             odom_topics=[t for t in topics.get(ODOMETRY_TYPE, []) if t != ODOM_POSE_TOPIC],
             scan_topics=topics.get(SCAN_TYPE, []))
         status.values["laser pose"] = {"tf": f"TF {self.params.base_frame} -> scan frame",
