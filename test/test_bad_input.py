@@ -121,6 +121,24 @@ def test_new_map_of_another_size_while_running(loc):
     assert not loc.ready and loc.estimate is None
 
 
+def test_an_initial_pose_sent_while_a_new_map_is_prepared_is_a_pose_in_that_map(loc, caplog):
+    """/map then /initialpose: the pose waits for the map being prepared (on the old map it could lie
+    in a wall and be moved, or the cloud would start in the old map's frame)."""
+    new = corridor_map(origin=(100.0, 100.0, 0.0))  # the old map's corridor, 100 m away
+    loc.begin_map_preparation()
+    with caplog.at_level(logging.INFO, logger="localization"):
+        assert loc.set_initial_pose([102.0, 101.5, 0.0])
+    assert "kept until the map" in caplog.text
+    assert np.all(loc.particles()[:, 0] < 50.0)  # not applied on the old map
+    loc.set_map(new)
+    assert loc.ready and np.hypot(*(loc.estimate.pose[:2] - [102.0, 101.5])) < 0.3
+    # a preparation that fails: the held pose goes to the map in use
+    loc.begin_map_preparation()
+    loc.set_initial_pose([103.0, 101.5, 0.0])
+    loc.begin_map_preparation(False)
+    assert np.hypot(*(loc.estimate.pose[:2] - [103.0, 101.5])) < 0.3
+
+
 def test_before_any_map(caplog):
     loc = Localizer(Parameters(num_particles=50))
     with caplog.at_level(logging.INFO):

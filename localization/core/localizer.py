@@ -102,6 +102,7 @@ class Localizer:
         self._recovery = RecoveryPolicy(p)
         self.map: OccupancyMap | None = None
         self.map_pending = False  # a map's sensor-model preparation is under way elsewhere
+        self._held_pose = None  # (pose, covariance, stamp): an initial pose waiting for the map on its way
         self._corrections = Outbox()  # sensor-corrected estimates not yet taken (its own lock)
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
@@ -134,6 +135,8 @@ class Localizer:
 
     def begin_map_preparation(self, pending: bool = True) -> None:  # False: preparing it failed
         self.map_pending = pending  # a map is being prepared elsewhere: inputs wait for it
+        if not pending:
+            self._apply_held_pose()
 
     def map_preparation(self, occupancy_map: OccupancyMap):  # slow? and a note for the log
         return self._pf.sensor_model.preparation(occupancy_map)
@@ -160,6 +163,7 @@ class Localizer:
                 self._timeline.set_anchor(None)
             elif not self._pf.initialized and self.params.global_localization:
                 self._spread_locked(self._timeline.latest)
+        self._apply_held_pose()
 
     def set_laser_offset(self, offset) -> None:
         """The laser pose (x, y, yaw) in the robot frame, e.g. read from TF."""
@@ -174,7 +178,12 @@ class Localizer:
             self._policy.force()
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
-        """(Re-)initialise the cloud around a pose (``core.initial_pose`` checks it); False: refused."""
+        """(Re-)initialise the cloud around a pose (``core.initial_pose`` checks it); False: refused.
+        While a new map is being prepared the pose is kept and applied on that map."""
+        if self.map_pending and np.all(np.isfinite(np.asarray(pose, dtype=float))):
+            self._held_pose = (pose, covariance, stamp)
+            self.log.info("initial pose kept until the map being prepared is ready (it is a pose in that map)")
+            return True
         init = check_initial_pose(pose, covariance, self.map, self.params, self.log)
         if init is None:
             return False
@@ -184,6 +193,11 @@ class Localizer:
             self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
             self._after_init_locked(stamp)
         return True
+
+    def _apply_held_pose(self) -> None:
+        held, self._held_pose = self._held_pose, None
+        if held is not None:
+            self.set_initial_pose(*held)
 
     def initialize_global(self, stamp: float | None = None) -> bool:
         """Spread the particles over the free space (needs a map)."""
