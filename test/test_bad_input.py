@@ -139,6 +139,23 @@ def test_an_initial_pose_sent_while_a_new_map_is_prepared_is_a_pose_in_that_map(
     assert np.hypot(*(loc.estimate.pose[:2] - [103.0, 101.5])) < 0.3
 
 
+def test_a_scan_on_another_clock_is_not_moved_by_the_old_odometry():
+    """Odometry ends at t = 0.1 s at 3 m/s; the next odometry and scan are stamped 1000 s later (a clock
+    reset, a bag loop): the motion across the jump is unknown, so the particles are not carried on by the
+    old twist for scan_max_wait (3 m/s × 0.5 s = 1.5 m) when that scan is used."""
+    loc = Localizer(Parameters(num_particles=200, random_seed=1, ray_caster="distance_transform"))
+    loc.set_map(corridor_map())
+    for k in range(6):
+        loc.on_odometry(TwistData(0.02 * k, 3.0, 0.0, 0.8))
+    loc.set_initial_pose([5.0, 1.5, 0.0], stamp=0.05)
+    loc.on_odometry(TwistData(1000.0, 0.0, 0.0, 0.0))  # the new clock's first message: a jump
+    loc.on_scan(ScanData(1000.0, *good_scan()))
+    loc.request_update()
+    loc.flush()  # used with what the odometry knows (as at the end of a recording)
+    assert_sane(loc)
+    assert abs(np.mean(loc.particles()[:, 0]) - 5.0) < 0.5  # 0.15 m of the old history's motion at most
+
+
 def test_before_any_map(caplog):
     loc = Localizer(Parameters(num_particles=50))
     with caplog.at_level(logging.INFO):

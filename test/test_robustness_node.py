@@ -172,6 +172,7 @@ def test_node_callbacks_survive_broken_messages_and_never_publish_nan(node, stre
 def test_node_keeps_working_after_broken_input_and_publishes_health(node):
     n = node
     n.on_map(n.good_map)
+    assert h.wait_until(lambda: n.map_worker.idle, 30.0)  # maps are installed on their own thread
     n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
     _clear(n)
     from localization.core.raycast.exact import ExactRayCaster

@@ -86,9 +86,10 @@ class ScanStep:
 
     def move_to(self, t: float) -> None:
         """Particles (and a challenger's) to time t through the odometry (noise per piece; exactly
-        back if t is older)."""
+        back if t is older). A t on another clock than the odometry's (a stamp jump) moves nothing:
+        the motion across the jump is unknown."""
         t_from = self.timeline.usable(self.t_filter)
-        if t_from is not None and not self.timeline.empty:
+        if t_from is not None and not self.timeline.empty and self.timeline.usable(t) == t:
             clouds = [c for c in (self.pf, self.recovery.challenger) if c is not None]
             if t < t_from:
                 for cloud in clouds:
