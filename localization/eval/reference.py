@@ -88,9 +88,10 @@ convention ``scan_stamp`` / ``scan_stamp_offset``, scan clock), and gets a base 
    the odometry or a look-alike match carried off, where neither it nor anyone knows the truth),
    and the track follows the odometry there (``odometry_consistency``: over every window of
    CONSISTENCY_WINDOW_S = 4 s, scans k → j, the distance the smoothed track covers, |X_k⁻¹ ⊕ X_j|_xy,
-   may differ from the odometry's |Ô_xy| (at the fitted a, δ) by at most 3 σ_xy(Ô) (the noise model
-   above, with the bag's own scales) + one map cell (distances, not vectors: a yaw-rate scale,
-   which the smoothing does not fit, bends the odometry's path); every scan of a window that does
+   may differ from the odometry's |Ô_xy| (at the fitted a, δ) by at most 3 σ_xy(Ô) + one map cell,
+   σ the nominal noise model above (the bag's own scales are inflated by the very stretches this
+   checks); distances, not vectors: a yaw-rate scale, which the smoothing does not fit, bends the
+   odometry's path; every scan of a window that does
    not is ``inconsistent`` and not scored — unless the odometry covered less than the track and
    the scan fits the map there nearly as well as normal (f_k ≥ CONSISTENCY_FIT_SHARE = 0.85 of the
    normal fit): a braking skid, wheels locked while the robot slides on, and the matches are right.
@@ -1114,8 +1115,8 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
         say(f"reference track: {exc}; nothing to score")
         return _unmatched(t, mt, mount, occupancy_map.resolution)
     fit = pose_fit(occupancy_map, scan_beams(scans, False, wall_depth / range_scale), sm.poses, mount, range_scale)
-    odo_noise = noise.scaled(sm.scales["odo_x"], sm.scales["odo_y"], sm.scales["odo_theta"])
-    consistent, skid = odometry_consistency(t, sm.poses, odo, sm.params[0], sm.params[1], odo_noise,
+    # the nominal noise model, not the bag's own scales: those are inflated by the very stretches checked here
+    consistent, skid = odometry_consistency(t, sm.poses, odo, sm.params[0], sm.params[1], noise,
                                             occupancy_map.resolution)
     return _track(t, mt, sm, mount, occupancy_map, fit, consistent, skid)
 
