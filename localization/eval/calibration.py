@@ -415,10 +415,11 @@ def calibrate(scans, odom_t, twist, occupancy_map: OccupancyMap, initial_pose, m
     median_range = _median_range(scans)
     say(f"range scale {s:.5f} ± {s_sig:.5f}, wall surface {100 * o:.2f} ± {100 * o_sig:.2f} cm behind the "
         f"free-space edge ({n_s} scans)")
-    if abs(s - 1.0) * median_range + max(o, 0.0) > 0.25 * occupancy_map.resolution:
+    depth = float(np.clip(o, 0.0, 0.5))  # map_wall_depth's range: a return never ends before the edge
+    if abs(s - 1.0) * median_range + depth > 0.25 * occupancy_map.resolution:
         say("matching again with the range scale and the wall surface ...")
         ref = build_reference(scans, occupancy_map, mount0, odom, initial_pose, range_scale=s,
-                              wall_depth=float(np.clip(o, 0.0, 0.5)), **kw)
+                              wall_depth=depth, **kw)
         lt, lp, ok = _matched_laser(ref, mount0)
     say(f"fitting odometry and mount on {len(lt)} matched scans ...")
     start = (ref.odometry.get("time_offset_s", 0.0), ref.odometry.get("speed_scale", 1.0))
@@ -426,7 +427,7 @@ def calibrate(scans, odom_t, twist, occupancy_map: OccupancyMap, initial_pose, m
     values = dict(zip(KEYS[:7], (float(v) for v in x)))
     values["laser_offset_yaw"] = float(wrap_angle(values["laser_offset_yaw"]))
     values["lidar_scale_to_map_scale"] = s
-    values["map_wall_depth"] = float(np.clip(o, 0.0, 0.5))  # the parameter's range: a return never ends before the edge
+    values["map_wall_depth"] = depth
     unc = dict(zip(KEYS[:7], (float(v) for v in sig)))
     unc["lidar_scale_to_map_scale"] = s_sig
     unc["map_wall_depth"] = o_sig

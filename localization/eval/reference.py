@@ -148,7 +148,7 @@ FIT_TOLERANCE_M = 0.10  # m: a return "fits" when it ends this close to the map'
 FIT_SHARE = 0.5  # a scan is scored only where its smoothed pose fits at least this share of the bag's normal fit
 FIT_NORMAL_PERCENTILE = 90  # the bag's normal fit: this percentile over its accepted matches
 CONSISTENCY_WINDOW_S = 4.0  # s: the smoothed track must follow the odometry over windows this long ...
-CONSISTENCY_SIGMAS = 3.0  # ... within this many σ of the odometry's noise (as the bag measured it) plus a map cell,
+CONSISTENCY_SIGMAS = 3.0  # ... within this many σ of the nominal odometry noise model plus a map cell,
 CONSISTENCY_FIT_SHARE = 0.85  # ... unless the odometry covered less and the scan fits this share of the normal fit
 PARAM_NAMES = ("speed_scale", "time_offset_s")  # the odometry's unknowns (a, δ)
 NP = 1  # of them solved with the poses (a); δ by its profile (module doc, step 3)
@@ -1216,12 +1216,12 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit
     # track carried off by the odometry or a look-alike match, is not a pose to score against)
     fit = np.full(K, np.nan) if fit is None else np.asarray(fit, dtype=float)
     normal = fit[sm.accepted & np.isfinite(fit)]
-    fits = np.ones(K, dtype=bool) if normal.size == 0 else \
-        np.nan_to_num(fit, nan=0.0) >= FIT_SHARE * np.percentile(normal, FIT_NORMAL_PERCENTILE)
+    fit_or_0 = np.nan_to_num(fit, nan=0.0)
+    normal_fit = np.percentile(normal, FIT_NORMAL_PERCENTILE) if normal.size else None  # None: no fit known
+    fits = np.ones(K, dtype=bool) if normal_fit is None else fit_or_0 >= FIT_SHARE * normal_fit
     consistent = np.ones(K, dtype=bool) if consistent is None else np.asarray(consistent, dtype=bool)
-    if normal.size and skid is not None:  # a skid: the odometry stopped short where the scans fit as they normally do
-        consistent = consistent | (np.asarray(skid, dtype=bool) & (
-            np.nan_to_num(fit, nan=0.0) >= CONSISTENCY_FIT_SHARE * np.percentile(normal, FIT_NORMAL_PERCENTILE)))
+    if normal_fit is not None and skid is not None:  # a skid: the odometry stopped short where the scans fit well
+        consistent = consistent | (np.asarray(skid, dtype=bool) & (fit_or_0 >= CONSISTENCY_FIT_SHARE * normal_fit))
     good = inside & free & fits & consistent & (std_along <= res) & (std_cross <= res)
     odometry = {n: float(v) for n, v in zip(PARAM_NAMES, sm.params)}
     odometry.update({f"{n}_sigma": float(v) for n, v in zip(PARAM_NAMES, sm.param_sigma)})
