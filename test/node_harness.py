@@ -7,6 +7,7 @@ once per process (``synthetic_drive()``, cached).
 from __future__ import annotations
 
 import array
+import contextlib
 import functools
 import threading
 import time
@@ -257,6 +258,29 @@ class Runner:
     def settle(self, seconds=0.3):
         """Let outputs already published reach the probe."""
         time.sleep(seconds)
+
+
+@contextlib.contextmanager
+def lifecycle_running(context, probe_name: str):
+    """A LifecycleParticleFilterNode (TEST_PARAMS) and a Probe spun by one executor thread; yields
+    (node, probe) and shuts both down after."""
+    from localization.ros.lifecycle_node import LifecycleParticleFilterNode
+    values = dict(TEST_PARAMS, **TEST_QOS)
+    node = LifecycleParticleFilterNode(context=context,
+                                       parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
+    probe = Probe(context, name=probe_name)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(probe)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    try:
+        yield node, probe
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        spinner.join(timeout=5.0)
+        probe.destroy_node()
+        node.destroy_node()
 
 
 def start_runner(context, **overrides) -> Runner:

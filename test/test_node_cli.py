@@ -19,7 +19,6 @@ pytest.importorskip("rclpy")
 
 import node_harness as h  # noqa: E402
 import rclpy  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SIGNAL_EXIT_S = 5.0  # a signal ends the process within this
@@ -113,18 +112,8 @@ def test_lifecycle_node_stops_on_sigint_and_sigterm_in_every_state(context, stat
 
 def test_lifecycle_cleanup_resets_the_statistics(context, drive, capfd):
     """After cleanup the next run's statistics start from zero (the shutdown line is not stale)."""
-    from localization.ros.lifecycle_node import LifecycleParticleFilterNode
-    values = dict(h.TEST_PARAMS, **h.TEST_QOS)
-    node = LifecycleParticleFilterNode(context=context,
-                                       parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])
-    probe = h.Probe(context, name="pf_stats_probe")
-    executor = rclpy.executors.SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    executor.add_node(probe)
-    spinner = threading.Thread(target=executor.spin, daemon=True)
-    spinner.start()
     scans = [msg for _, kind, msg in drive.until(0.3) if kind == "scan"]
-    try:
+    with h.lifecycle_running(context, "pf_stats_probe") as (node, probe):
         node.trigger_configure()
         node.trigger_activate()
         assert h.wait_until(lambda: probe.scan_pub.get_subscription_count() > 0, 10.0)
@@ -138,11 +127,6 @@ def test_lifecycle_cleanup_resets_the_statistics(context, drive, capfd):
         node.trigger_activate()
         node.trigger_deactivate()
         node.trigger_cleanup()
-    finally:
-        executor.shutdown(timeout_sec=5.0)
-        spinner.join(timeout=5.0)
-        probe.destroy_node()
-        node.destroy_node()
     stats = [line for line in capfd.readouterr().err.splitlines() if "scans: " in line and "received" in line]
     assert len(stats) == 2, stats
     n = len(scans)

@@ -60,12 +60,18 @@ def test_shipped_map_has_one_digest_as_yaml_and_as_message():
 
 
 # ------------------------------------------------------------------ diagnostics that do not say OK wrongly
-def test_watchdog_errors_below_the_lost_floor_and_warns_while_scans_are_dropped():
-    w = Watchdog(0.0, health_lost_floor=0.35)
+def _watchdog_with_input(health_lost_floor: float) -> Watchdog:
+    """A watchdog with a map and 1 s of scans and odometry at 40 Hz (time 0 to 0.975 s)."""
+    w = Watchdog(0.0, health_lost_floor=health_lost_floor)
     w.map_ready(0.0)
     for k in range(40):
         w.scan_received(k * 0.025)
         w.odom_received(k * 0.025)
+    return w
+
+
+def test_watchdog_errors_below_the_lost_floor_and_warns_while_scans_are_dropped():
+    w = _watchdog_with_input(0.35)
     now = 1.0
     assert w.status(now, ready=True, health=0.9).level == OK
     assert w.status(now, ready=True, health=math.nan).level == OK  # no agreement yet (a global spread)
@@ -77,6 +83,17 @@ def test_watchdog_errors_below_the_lost_floor_and_warns_while_scans_are_dropped(
     assert st.values["scans dropped"] == "3"
     assert w.status(now + 6.0, ready=True, health=0.9).problems == [] or \
         "scans-dropped" not in {p.key for p in w.status(now + 6.0, ready=True, health=0.9).problems}
+
+
+def test_watchdog_warns_while_the_scans_disagree_with_the_map():
+    w = _watchdog_with_input(0.25)
+    assert w.status(1.0, ready=True, health=0.9).level == OK
+    st = w.status(1.0, ready=True, health=0.4, holding=True)  # holding on odometry, above the lost floor
+    assert st.level == WARN and st.problems[0].key == "disagree" and "scans disagree with the map" in st.message
+    assert "0.40" in st.message
+    st = w.status(1.0, ready=True, health=0.1, holding=True)  # and below the floor: ERROR first, the WARN with it
+    assert st.level == ERROR and [p.key for p in st.problems][:2] == ["lost", "disagree"]
+    assert w.status(1.0, ready=False, holding=True).level == OK  # not localizing: nothing to disagree with
 
 
 def test_node_diagnostics_report_the_scans_it_cannot_use(runner, drive):
