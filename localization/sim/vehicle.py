@@ -16,6 +16,12 @@ import numpy as np
 from localization.core.geometry import compose, integrate_twist, wrap_angle
 
 
+def _toward(current: float, cmd: float, bound: float, rate: float, dt: float) -> float:
+    """``current`` moved toward the command clipped to ±``bound``, by at most ``rate`` · dt."""
+    cmd = float(np.clip(cmd, -bound, bound))
+    return current + float(np.clip(cmd - current, -rate * dt, rate * dt))
+
+
 class SimulationError(RuntimeError):
     """The simulation cannot run as configured (bad route, car hits a wall, ...)."""
 
@@ -55,11 +61,8 @@ class CarModel:
 
     def limit(self, v: float, steer: float, v_cmd: float, steer_cmd: float, dt: float) -> tuple[float, float]:
         """Apply the speed, steering, acceleration and steering-rate limits to a command."""
-        v_cmd = float(np.clip(v_cmd, -self.max_speed, self.max_speed))
-        steer_cmd = float(np.clip(steer_cmd, -self.max_steer, self.max_steer))
-        v_new = v + float(np.clip(v_cmd - v, -self.max_accel * dt, self.max_accel * dt))
-        steer_new = steer + float(np.clip(steer_cmd - steer, -self.max_steer_rate * dt, self.max_steer_rate * dt))
-        return v_new, steer_new
+        return (_toward(v, v_cmd, self.max_speed, self.max_accel, dt),
+                _toward(steer, steer_cmd, self.max_steer, self.max_steer_rate, dt))
 
     def step(self, pose, v: float, steer: float, dt: float) -> np.ndarray:
         """Pose after driving (v, δ) for dt: the constant-twist arc (v, 0, v tan δ / L) from pose
@@ -254,11 +257,8 @@ class DiffDriveModel:
 
     def limit(self, v: float, w: float, v_cmd: float, w_cmd: float, dt: float) -> tuple[float, float]:
         """Apply the speed, yaw-rate and acceleration limits to a command (v_cmd, ω_cmd)."""
-        v_cmd = float(np.clip(v_cmd, -self.max_speed, self.max_speed))
-        w_cmd = float(np.clip(w_cmd, -self.max_yaw_rate, self.max_yaw_rate))
-        v_new = v + float(np.clip(v_cmd - v, -self.max_accel * dt, self.max_accel * dt))
-        w_new = w + float(np.clip(w_cmd - w, -self.max_yaw_accel * dt, self.max_yaw_accel * dt))
-        return v_new, w_new
+        return (_toward(v, v_cmd, self.max_speed, self.max_accel, dt),
+                _toward(w, w_cmd, self.max_yaw_rate, self.max_yaw_accel, dt))
 
     def step(self, pose, v: float, w: float, dt: float) -> np.ndarray:
         """Pose after driving (v, ω) for dt: the constant-twist arc."""
