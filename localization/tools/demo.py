@@ -329,13 +329,13 @@ def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
             conf_agree = float(np.median(res.agreement[idx[near]])) if near.any() else None
         out["confident_scans"] = int(ref.good.sum())
         out["error_vs_yardstick_median_m"] = float(np.nanmedian(err)) if np.isfinite(err).any() else None
-        since = rt >= t0 + (conv if conv is not None else np.inf)  # once converged
-        far = np.flatnonzero(since & (err > CONVERGED_M))  # where the estimate is off (when, how long)
-        out["off_share"] = float(far.size / max(np.count_nonzero(since & np.isfinite(err)), 1)) \
-            if conv is not None else None
-        out["last_off_s"] = float(rt[far[-1]] - t0) if far.size else None
-        out["false_recoveries"] = M.false_recoveries(rt[since], err[since], M.FALSE_RECOVERY_M, 0.0) \
-            if conv is not None else None
+        out["off_share"] = out["last_off_s"] = out["false_recoveries"] = None
+        if conv is not None:  # once converged: where the estimate is off (how much, until when) and far off
+            since = rt >= t0 + conv
+            far = np.flatnonzero(since & (err > CONVERGED_M))
+            out["off_share"] = float(far.size / max(np.count_nonzero(since & np.isfinite(err)), 1))
+            out["last_off_s"] = float(rt[far[-1]] - t0) if far.size else None
+            out["false_recoveries"] = M.false_recoveries(rt[since], err[since], M.FALSE_RECOVERY_M, 0.0)
     if how is None:
         hit = np.flatnonzero(np.asarray(res.agreement) >= HEALTHY_AGREEMENT)
         conv = float(res.agreement_t[hit[0]] - t0) if hit.size else None
@@ -436,7 +436,7 @@ def main(argv=None) -> int:
             world = changes.get("world")
             sim_jobs.append({"label": label, "trial": name, "bag": str(bag), "map": SIM_TRIALS[name].config.map,
                              "params_file": str(sim_params), "overrides": overrides, "out": str(out / label),
-                             "world": None if world is None else asdict(world), "speed": changes.get("speed")})
+                             "world": None if world is None else asdict(world)})
     if not args.skip_sim and not args.skip_fast:
         extra = {"duration": args.duration} if args.duration else {}
         bag = sim_bag(FAST_TRIAL, log=lambda s: print(s, file=sys.stderr), **extra)
