@@ -7,7 +7,7 @@ import pytest
 from helpers import corridor_map
 
 from localization.benchmarks import robustness as RB
-from localization.core.filter.mcl import MonteCarloLocalizer
+from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.localizer import Localizer
 from localization.core.motion import MotionModel
@@ -15,7 +15,9 @@ from localization.core.occupancy_map import load_map
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.raycast.exact import ExactRayCaster
+from localization.core.recovery import SwitchGlide
 from localization.core.scan import ScanData
+from localization.core.scan_step import StepOutcome
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder
 from localization.sensor_model import SensorModel
@@ -205,3 +207,66 @@ def test_scans_the_map_cannot_explain_hold_the_pose_on_odometry_without_a_jump(c
     assert steps.max() < 0.05  # never a jump: 0.25 m/s × 20 ms = 5 mm per message
     assert poses[-1, 0] == pytest.approx(3.0 + 0.25 * t[-1], abs=0.3)  # held on odometry
     assert poses[-1, 1] == pytest.approx(1.5, abs=0.3)
+
+
+# ------------------------------------------------------------------------------- a switch glides
+def test_a_switch_moves_the_published_pose_in_bounded_steps_to_the_new_place():
+    glide = SwitchGlide(step=0.25, turn=0.2, farthest=2.0)
+    published, target, cov = np.array([1.0, 2.0, 3.0]), np.array([1.6, 1.75, -3.0]), np.diag([1e-3, 1e-3, 1e-4])
+    glide.start(published, target)
+    assert glide.active
+    path = [published]
+    while glide.active and len(path) < 20:
+        pose, c = glide.apply(path[-1], target, cov)
+        if glide.active:  # still on its way: the covariance covers the distance still to go
+            rest = target[:2] - pose[:2]
+            assert c[0, 0] >= cov[0, 0] + 0.99 * rest[0] ** 2 and c[1, 1] >= cov[1, 1] + 0.99 * rest[1] ** 2
+        else:
+            assert np.array_equal(c, cov)
+        path.append(pose)
+    path = np.array(path)
+    assert np.allclose(path[-1], target)  # there, exactly
+    steps = np.hypot(*np.diff(path[:, :2], axis=0).T)
+    turns = np.abs(np.angle(np.exp(1j * np.diff(path[:, 2]))))
+    assert steps.max() <= 0.25 + 1e-12 and turns.max() <= 0.2 + 1e-12  # 0.65 m and 0.28 rad: 3 steps
+    assert len(path) - 1 == 3
+    assert turns.sum() == pytest.approx(2 * np.pi - 6.0)  # the short way round through ±π
+    far = SwitchGlide(step=0.25, turn=0.2, farthest=2.0)
+    far.start(published, published + [3.0, 0.0, 0.0])  # carried elsewhere: published at once
+    assert not far.active and np.array_equal(far.apply(published, target, cov)[0], target)
+    off = SwitchGlide(step=0.0, turn=0.2, farthest=2.0)
+    off.start(published, target)
+    assert not off.active
+
+
+def test_a_near_switch_is_published_without_a_jump(stata):
+    """A challenger wins 0.6 m from where the held cloud is: the published estimates reach it in steps
+    of at most recovery_switch_step; the cloud itself is there at once."""
+    loc = Localizer(params(num_particles=300), logging.getLogger("test.glide"))
+    loc.set_map(stata)
+    start = np.array([-2.0, 0.0, 0.0])
+    loc.set_initial_pose(start, np.diag([1e-4, 1e-4, 1e-5]))
+    near = start + [0.5, 0.35, 0.1]
+    challenger = Estimate(pose=near, covariance=np.diag([1e-4, 1e-4, 1e-5]))
+
+    real_run, runs = loc._step.run, []
+
+    def run(scan, t_s, occupancy_map, global_mode):  # the scan step, with a switch on its second scan
+        real_run(scan, t_s, occupancy_map, global_mode)  # (the particles moved to the scan's time)
+        runs.append(t_s)
+        if len(runs) == 2:
+            loc._pf.set_particles(np.tile(near, (300, 1)))  # the challenger's particles, in place
+            return StepOutcome(estimate=challenger, switched=challenger)
+        return StepOutcome(estimate=loc._pf.estimate())
+
+    loc._step.run = run
+    poses = []
+    for k in range(8):
+        loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
+        est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0))
+        poses.append(est.pose)
+    poses = np.array(poses)
+    steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and steps.max() > 0.2  # in steps ...
+    assert np.allclose(poses[-1], near)  # ... to the place the challenger won
+    assert loc.recoveries == 1

@@ -46,7 +46,7 @@ from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.policies import ScanQueue, UpdatePolicy, UpdatePolicyParams
-from localization.core.recovery import RecoveryPolicy
+from localization.core.recovery import RecoveryPolicy, SwitchGlide
 from localization.core.scan import ScanData, scan_time
 from localization.core.scan_step import ScanStep
 from localization.core.sensors.beam import BeamModel, BeamModelParams
@@ -107,6 +107,7 @@ class Localizer:
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
         self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
+        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
         self.recoveries = 0
 
     has_map = property(lambda self: self.map is not None)
@@ -215,6 +216,7 @@ class Localizer:
     def _after_init_locked(self, stamp: float | None) -> None:
         """The particles describe ``stamp`` (scan clock; the newest odometry's time if unusable)."""
         self._recovery.restart()
+        self._glide.stop()
         self._policy.force()
         self._queue.clear()
         t = self._timeline.usable(stamp) if not self._timeline.empty else stamp
@@ -295,9 +297,16 @@ class Localizer:
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
-        self.recoveries += out.switched is not None
+        published = None  # the last published pose carried to this scan, while a switch needs it
+        if out.switched is not None or self._glide.active:
+            carried = self._timeline.pose_at(t_s)
+            published = None if carried is None else carried.pose
+        if out.switched is not None:
+            self.recoveries += 1
+            self._glide.start(published, out.switched.pose)
         if out.estimate is not None:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
-            corrected = PoseEstimate(stamp=t_s, pose=est.pose, covariance=est.covariance)
+            pose, cov = self._glide.apply(published, est.pose, est.covariance)
+            corrected = PoseEstimate(stamp=t_s, pose=pose, covariance=cov)
             self._timeline.set_anchor(corrected)
             self._newest = self._corrections.put(corrected)

@@ -115,7 +115,7 @@ PARAMETERS = [
     Param("global_converged_std", 0.5, "a global spread has converged when the cloud's position std (m, largest "
           "axis) falls below this", _positive, "> 0"),
     Param("recovery", True, "detect a lost filter (scan-map agreement, see health_*): hold the pose on odometry "
-          "(updates only where they agree with the map) and search the map for a place the scans fit clearly "
+          "(the scans update only the search, not the cloud) and search the map for a place the scans fit clearly "
           "better; switch there only once confirmed (recovery_*). Never a jump on one scan",
           lambda v: isinstance(v, bool), "true or false"),
     Param("recovery_search_period", 2.0, "while lost: seconds (scan clock) between two searches of the map for a "
@@ -128,6 +128,13 @@ PARAMETERS = [
           lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
     Param("recovery_confirm_distance", 1.0, "... while the robot travelled at least this far (m)", _non_negative,
           ">= 0"),
+    Param("recovery_switch_step", 0.25, "after a switch the published pose moves to the new place by at most this "
+          "far (m) per sensor update, its covariance widened by the distance still to go (0: in one step)",
+          _non_negative, ">= 0"),
+    Param("recovery_switch_turn", 0.2, "... and turns by at most this much (rad) per sensor update", _non_negative,
+          ">= 0"),
+    Param("recovery_switch_glide_max", 2.0, "a switch to a place farther than this (m) from the published pose (the "
+          "robot was carried elsewhere) is published at once", _non_negative, ">= 0"),
     Param("recovery_challenger_timeout", 8.0, "a challenger that has not won within this long (s, scan clock) is "
           "dropped", _positive, "> 0"),
     Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "

@@ -22,6 +22,16 @@ the fast average stays low for ``health_lost_updates`` updates. Then, with ``rec
                challenger that has not won within ``recovery_challenger_timeout`` s is dropped (the next
                search may try again)
     resume     the fast average back above the lost floor: tracking again
+    glide      after a switch the cloud is the challenger's at once, but the published estimate
+               moves there in steps (``SwitchGlide``): the odometry carries the last published pose x̄
+               to the scan's time, and with d = x̂ ⊖ x̄ (the cloud's estimate minus it, θ wrapped)
+
+                   x̄ ← x̄ + f·d,   f = min(1, recovery_switch_step / |d_xy|, recovery_switch_turn / |d_θ|)
+
+               per sensor update, its covariance widened by the part still to go, (1 − f)² d dᵀ on the
+               diagonal, until f = 1: a confirmed correction is never one jump of the published pose.
+               A switch farther than ``recovery_switch_glide_max`` (the robot was carried elsewhere) is
+               published at once: gliding would draw a path through walls
 
 A global spread (start, service) is judged only once converged (cloud std < global_converged_std):
 before that, its mean says nothing about any of its hypotheses. ``status`` is what the node reports.
@@ -33,6 +43,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.geometry import wrap_angle
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
 
@@ -101,8 +112,8 @@ class RecoveryPolicy:
             m = self.monitor
             self.holding = True
             message = (f"localization lost: scan-map agreement {m.fast:.2f} (long-term {m.slow:.2f}) for "
-                       f"{m.low_count} updates: holding the pose on odometry, updates only where they agree "
-                       "with the map, searching the map for a better place")
+                       f"{m.low_count} updates: holding the pose on odometry (the scans no longer move it), "
+                       "searching the map for a place they fit")
         elif self.holding and self.monitor.low_count == 0:
             self._stop_holding()
             message = f"scans agree with the map again (agreement {self.monitor.fast:.2f}): tracking"
@@ -133,3 +144,38 @@ class RecoveryPolicy:
             self.challenger, self._wins = None, 0
             return "drop"
         return ""
+
+
+class SwitchGlide:
+    """The published estimate's way to a place a challenger won (module doc, "glide")."""
+
+    def __init__(self, step: float, turn: float, farthest: float):
+        self.step, self.turn = float(step), float(turn)  # m, rad per sensor update (0: at once)
+        self.farthest = float(farthest)  # m: a switch farther than this is published at once
+        self.active = False
+
+    def start(self, published, pose) -> None:
+        """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
+        far = published is None or math.hypot(pose[0] - published[0], pose[1] - published[1]) > self.farthest
+        self.active = self.step > 0 and self.turn > 0 and not far
+
+    def stop(self) -> None:
+        self.active = False
+
+    def apply(self, published, pose, covariance) -> tuple[np.ndarray, np.ndarray]:
+        """(pose, covariance) to publish for the cloud's ``pose``, given the last ``published`` pose
+        carried to the same time (None: nothing published yet: the cloud's pose as it is)."""
+        pose, covariance = np.asarray(pose, dtype=float), np.asarray(covariance, dtype=float)
+        if not self.active or published is None:
+            self.active = False
+            return pose, covariance
+        d = pose - np.asarray(published, dtype=float)
+        d[2] = float(wrap_angle(d[2]))
+        dist, turn = math.hypot(d[0], d[1]), abs(d[2])
+        f = min(1.0, self.step / dist if dist > 0 else 1.0, self.turn / turn if turn > 0 else 1.0)
+        if f >= 1.0:
+            self.active = False
+            return pose, covariance
+        out = np.asarray(published, dtype=float) + f * d
+        out[2] = float(wrap_angle(out[2]))
+        return out, covariance + np.diag(((1.0 - f) * d) ** 2)
