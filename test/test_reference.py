@@ -25,6 +25,7 @@ from localization.eval.reference import (
     FIT_SHARE,
     OdometryNoise,
     best_lag,
+    better_fit_elsewhere,
     build_reference,
     constrained_axes,
     dead_reckon,
@@ -452,3 +453,26 @@ def test_odometry_consistency_flags_a_track_that_stops_following_the_odometry():
     locked = (t.copy(), np.column_stack([np.where(t < 16.0, 1.0, 0.0), np.zeros_like(t), np.zeros_like(t)]))
     ok, skid = odometry_consistency(t, track, locked, 1.0, 0.0, noise, 0.05)  # the track slides on past 16 s
     assert not ok[t > 17.0].all() and skid[t > 17.0].all() and ok[t < 10.0].all()
+    slow = (t.copy(), np.column_stack([np.full_like(t, 0.5), np.zeros_like(t), np.zeros_like(t)]))
+    ok, skid = odometry_consistency(t, track, slow, 1.0, 0.0, noise, 0.05)  # outruns wheels that keep rolling:
+    assert not ok[(t > 4.0) & (t < 16.0)].any() and not skid.any()  # carried off by matches, not a skid
+
+
+def test_a_track_is_not_scored_where_the_map_fits_the_scan_clearly_better_nearby(trial1):
+    """The yardstick's own poses: no better place nearby. A track carried 1.2 m and 0.15 rad off for 2 s
+    (where a changed room let the odometry and look-alike matches take it): those half seconds are found
+    by the wide search, the rest is not touched."""
+    cfg, m, rec = trial1
+    scans = _scans(cfg, rec)
+    ref = build_reference(scans, m, cfg.laser_offset, _odometry(rec), initial_pose=rec.initial_pose)
+    assert ref.counts["better_fit_elsewhere"] == 0 and ref.summary()["better_fit_elsewhere_share"] == 0.0
+    beams = scan_beams(scans, False)
+    off = (ref.t - ref.t[0] > 2.0) & (ref.t - ref.t[0] < 4.0)
+    carried = ref.poses.copy()
+    carried[off] = compose(carried[off], np.array([0.9, 0.8, 0.15]))
+    fit = pose_fit(m, beams, carried, cfg.laser_offset)
+    flagged = better_fit_elsewhere(m, beams, ref.t, carried, fit, cfg.laser_offset)
+    rel = ref.t - ref.t[0]
+    assert flagged[(rel > 2.5) & (rel < 3.5)].all()  # every half second inside the carried stretch
+    assert not flagged[(rel < 1.5) | (rel > 4.5)].any()  # and nothing away from it
+    assert not better_fit_elsewhere(m, beams, ref.t, np.full_like(carried, np.nan), fit, cfg.laser_offset).any()

@@ -92,11 +92,19 @@ convention ``scan_stamp`` / ``scan_stamp_offset``, scan clock), and gets a base 
    σ the nominal noise model above (the bag's own scales are inflated by the very stretches this
    checks); distances, not vectors: a yaw-rate scale, which the smoothing does not fit, bends the
    odometry's path; every scan of a window that does
-   not is ``inconsistent`` and not scored — unless the odometry covered less than the track and
-   the scan fits the map there nearly as well as normal (f_k ≥ CONSISTENCY_FIT_SHARE = 0.85 of the
-   normal fit): a braking skid, wheels locked while the robot slides on, and the matches are right.
+   not is ``inconsistent`` and not scored — unless the odometry covered less than the track, reports
+   the wheels standing (speed < STANDSTILL_SPEED and |ω| < STANDSTILL_TURN) somewhere in every such
+   window, and the scan fits the map there nearly as well as normal (f_k ≥ CONSISTENCY_FIT_SHARE =
+   0.85 of the normal fit): a braking skid, wheels locked while the robot slides on, and the matches
+   are right (a track that outruns rolling wheels has been carried off by look-alike matches).
    Wrong matches in a changed room can drag the smoothed track metres away from where the odometry
-   says the robot went, and back in one step when the matches are right again).
+   says the robot went, and back in one step when the matches are right again), and no place near
+   the track fits the scan clearly better (``better_fit_elsewhere``: every ELSEWHERE_EVERY_S = 0.5 s
+   the first scan is matched within ELSEWHERE_WINDOW = ± 2.5 m, ± 0.4 rad of its track pose; when
+   the match fits by ELSEWHERE_MARGIN = 0.15 more than the track, f_match ≥ f_k + 0.15, the whole
+   half second is not scored: a track that odometry and look-alike matches carried through a changed
+   room can come out of it on the wrong side of a wall and still fit half as well as normal, while
+   the place the robot is fits nearly perfectly).
 
 What it cannot see: an error the map shares (a wall drawn in the wrong place moves the track with
 it), a uniform offset of the whole track along a corridor no scan constrains, and where no match
@@ -132,6 +140,7 @@ from localization.eval.metrics import FALSE_RECOVERY_M, false_recoveries, interp
 LAG_SEARCH_S = 0.25  # ± seconds searched for the best lag
 LAG_STEP_S = 0.002
 STANDSTILL_SPEED = 0.1  # m/s: below, the direction of travel is the reference heading
+STANDSTILL_TURN = 0.1  # rad/s: odometry below this and STANDSTILL_SPEED reports the wheels standing
 
 START_WINDOW = (1.0, 0.5)  # m, rad: the first scan is searched this far around a given start pose
 MIN_WINDOW = (0.25, 0.1)  # m, rad: the tracking search window is never smaller ...
@@ -150,6 +159,10 @@ FIT_NORMAL_PERCENTILE = 90  # the bag's normal fit: this percentile over its acc
 CONSISTENCY_WINDOW_S = 4.0  # s: the smoothed track must follow the odometry over windows this long ...
 CONSISTENCY_SIGMAS = 3.0  # ... within this many σ of the nominal odometry noise model plus a map cell,
 CONSISTENCY_FIT_SHARE = 0.85  # ... unless the odometry covered less and the scan fits this share of the normal fit
+ELSEWHERE_WINDOW = (2.5, 0.4)  # m, rad: every ELSEWHERE_EVERY_S the map is searched this far around the track ...
+ELSEWHERE_EVERY_S = 0.5  # s
+ELSEWHERE_MARGIN = 0.15  # ... and a pose that fits this much better than the track's leaves its scans unscored
+ELSEWHERE_BEAMS = 120  # beams (evenly decimated) of that search
 PARAM_NAMES = ("speed_scale", "time_offset_s")  # the odometry's unknowns (a, δ)
 NP = 1  # of them solved with the poses (a); δ by its profile (module doc, step 3)
 SCALE_PRIOR, SCALE_BOUNDS = 0.3, (0.5, 2.0)  # σ of the prior on a − 1; beyond the bounds the smoothing failed
@@ -1066,6 +1079,7 @@ class ReferenceTrack:
                 "outside_free_space_share": float(self.counts.get("outside_free_space", 0) / K),
                 "poor_fit_share": float(self.counts.get("poor_fit", 0) / K),
                 "odometry_inconsistent_share": float(self.counts.get("odometry_inconsistent", 0) / K),
+                "better_fit_elsewhere_share": float(self.counts.get("better_fit_elsewhere", 0) / K),
                 "odometry": dict(self.odometry)}
 
 
@@ -1114,18 +1128,21 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
     except (ValueError, np.linalg.LinAlgError) as exc:
         say(f"reference track: {exc}; nothing to score")
         return _unmatched(t, mt, mount, occupancy_map.resolution)
-    fit = pose_fit(occupancy_map, scan_beams(scans, False, wall_depth / range_scale), sm.poses, mount, range_scale)
+    fit_beams = scan_beams(scans, False, wall_depth / range_scale)
+    fit = pose_fit(occupancy_map, fit_beams, sm.poses, mount, range_scale)
     # the nominal noise model, not the bag's own scales: those are inflated by the very stretches checked here
     consistent, skid = odometry_consistency(t, sm.poses, odo, sm.params[0], sm.params[1], noise,
                                             occupancy_map.resolution)
-    return _track(t, mt, sm, mount, occupancy_map, fit, consistent, skid)
+    elsewhere = better_fit_elsewhere(occupancy_map, fit_beams, t, sm.poses, fit, mount, range_scale)
+    return _track(t, mt, sm, mount, occupancy_map, fit, consistent, skid, elsewhere)
 
 
 def odometry_consistency(t, poses, odometry, speed_scale: float, offset: float, noise: OdometryNoise,
                          tolerance: float, window: float = CONSISTENCY_WINDOW_S) -> tuple[np.ndarray, np.ndarray]:
     """Two (K,) bool arrays: (consistent) no window of ``window`` s containing scan k has the track
     ``poses`` cover a distance different from the odometry's by more than CONSISTENCY_SIGMAS σ +
-    ``tolerance`` (m); (skid) every such window has the odometry covering less (module doc)."""
+    ``tolerance`` (m); (skid) every such window has the odometry covering less and standing still in
+    it (module doc)."""
     t = np.asarray(t, dtype=float)
     poses = np.asarray(poses, dtype=float)
     K = len(t)
@@ -1149,9 +1166,15 @@ def odometry_consistency(t, poses, odometry, speed_scale: float, offset: float, 
         np.add.at(marks, k[windows], 1)
         np.add.at(marks, j[windows] + 1, -1)
         return np.cumsum(marks)[:K] > 0
+    # a skid locks the wheels: the odometry reports the robot standing somewhere in the window
+    tw = odometry_twist_at(odometry[0], odometry[1], t - offset)
+    standing = (np.hypot(tw[:, 0], tw[:, 1]) < STANDSTILL_SPEED) & (np.abs(tw[:, 2]) < STANDSTILL_TURN)
+    stood = np.r_[0, np.cumsum(standing)]
+    locked = stood[j + 1] > stood[k]
     lagging = scans_of(excess < -gate)
-    skidding = scans_of(excess > gate)
-    return ~(lagging | skidding), skidding & ~lagging
+    skidding = scans_of((excess > gate) & locked)
+    ahead = scans_of((excess > gate) & ~locked)  # the track outran rolling wheels: neither a skid nor right
+    return ~(lagging | skidding | ahead), skidding & ~lagging & ~ahead
 
 
 def pose_fit(occupancy_map: OccupancyMap, beams: list[ScanBeams], poses, mount, range_scale: float = 1.0) -> np.ndarray:
@@ -1165,6 +1188,34 @@ def pose_fit(occupancy_map: OccupancyMap, beams: list[ScanBeams], poses, mount, 
         if len(q):
             d, _ = edge_distance(occupancy_map, compose(pose, np.column_stack([q, np.zeros(len(q))]))[:, :2])
             out[k] = float(np.mean(np.abs(d) <= FIT_TOLERANCE_M))
+    return out
+
+
+def better_fit_elsewhere(occupancy_map: OccupancyMap, beams: list[ScanBeams], t, poses, fit, mount,
+                         range_scale: float = 1.0, every: float = ELSEWHERE_EVERY_S) -> np.ndarray:
+    """(K,) bool: the scans of each ``every``-second stretch whose first scan with a fit, matched by the
+    correlative matcher within ELSEWHERE_WINDOW of its track pose ``poses[k]``, fits the map at the
+    match by at least ELSEWHERE_MARGIN more than at the track (``pose_fit``; ``fit`` (K,) the track's):
+    the map explains that scan clearly better somewhere the track is not (module doc, step 4)."""
+    t = np.asarray(t, dtype=float)
+    poses = np.asarray(poses, dtype=float)
+    fit = np.asarray(fit, dtype=float)
+    out = np.zeros(len(t), dtype=bool)
+    ok = np.isfinite(fit) & np.all(np.isfinite(poses), axis=1)
+    if not ok.any():
+        return out
+    config = MatcherConfig(window_xy=ELSEWHERE_WINDOW[0], window_theta=ELSEWHERE_WINDOW[1], max_beams=ELSEWHERE_BEAMS)
+    matcher = CorrelativeMatcher(occupancy_map, config)
+    stretch = np.floor((t - t[ok][0]) / every).astype(np.int64)
+    idx = np.flatnonzero(ok)
+    for first in idx[np.unique(stretch[idx], return_index=True)[1]]:  # the first scan with a fit of each stretch
+        b = beams[first]
+        r = matcher.match(b.ranges, b.angles, mount, poses[first], range_scale=range_scale)
+        if r is None:
+            continue
+        there = pose_fit(occupancy_map, [b], r.pose[None], mount, range_scale)[0]
+        if there >= fit[first] + ELSEWHERE_MARGIN:
+            out[stretch == stretch[first]] = True
     return out
 
 
@@ -1196,7 +1247,7 @@ def _directions(t, poses) -> np.ndarray:
 
 
 def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit=None,
-           consistent=None, skid=None) -> ReferenceTrack:
+           consistent=None, skid=None, elsewhere=None) -> ReferenceTrack:
     res = occupancy_map.resolution
     K = len(t)
     d = _directions(t, sm.poses)
@@ -1222,7 +1273,8 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit
     consistent = np.ones(K, dtype=bool) if consistent is None else np.asarray(consistent, dtype=bool)
     if normal_fit is not None and skid is not None:  # a skid: the odometry stopped short where the scans fit well
         consistent = consistent | (np.asarray(skid, dtype=bool) & (fit_or_0 >= CONSISTENCY_FIT_SHARE * normal_fit))
-    good = inside & free & fits & consistent & (std_along <= res) & (std_cross <= res)
+    elsewhere = np.zeros(K, dtype=bool) if elsewhere is None else np.asarray(elsewhere, dtype=bool)
+    good = inside & free & fits & consistent & ~elsewhere & (std_along <= res) & (std_cross <= res)
     odometry = {n: float(v) for n, v in zip(PARAM_NAMES, sm.params)}
     odometry.update({f"{n}_sigma": float(v) for n, v in zip(PARAM_NAMES, sm.param_sigma)})
     odometry["noise_scales"] = {k: float(v) for k, v in sm.scales.items()}
@@ -1231,7 +1283,7 @@ def _track(t, mt: Matches, sm: Smoothed, mount, occupancy_map: OccupancyMap, fit
               "ambiguous": int((sm.accepted & ~np.all(constrained[:, 3:5], axis=1)).sum()),
               "low_score": int((mt.usable & ~sm.accepted).sum()), "unmatched": int((~mt.usable).sum()),
               "outside_free_space": int((~free).sum()), "poor_fit": int((~fits).sum()),
-              "odometry_inconsistent": int((~consistent).sum()),
+              "odometry_inconsistent": int((~consistent).sum()), "better_fit_elsewhere": int(elsewhere.sum()),
               "start": mt.start, "function_evaluations": sm.nfev}
     return ReferenceTrack(t=t, poses=sm.poses, laser_poses=compose(sm.poses, np.asarray(mount, dtype=float)),
                           matched=np.where(mt.usable[:, None], mt.poses, np.nan), information=mt.information,
