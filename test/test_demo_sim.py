@@ -21,12 +21,15 @@ def _metrics(mean, world=None, recoveries=0, false=0):
 
 def test_perturbed_runs_are_the_standard_world_and_two_2mps_drives():
     runs = D.perturbed_runs(["trial1_noise0", "trial2_noise0.3"])
-    assert runs["trial1_noise0_perturbed"] == ("trial1_noise0", {"world": STANDARD_PERTURBATION})
-    assert runs["trial2_noise0.3_perturbed"] == ("trial2_noise0.3", {"world": STANDARD_PERTURBATION})
+    assert runs["trial1_noise0_perturbed"] == ("trial1_noise0", {"world": STANDARD_PERTURBATION}, {})
+    assert runs["trial2_noise0.3_perturbed"] == ("trial2_noise0.3", {"world": STANDARD_PERTURBATION}, {})
     for scale in (1.01, 1.02):
-        assert runs[f"trial2_2mps_scale{scale:g}"] == ("trial2_noise0.3", {"speed": 2.0, "world": replace(
-            STANDARD_PERTURBATION, scale=scale)})
-    assert len(runs) == 4
+        drive = {"speed": 2.0, "world": replace(STANDARD_PERTURBATION, scale=scale)}
+        assert runs[f"trial2_2mps_scale{scale:g}"] == ("trial2_noise0.3", drive, {})
+        # the same recording, the filter learning the range scale online
+        online = {"range_scale_estimation": True}
+        assert runs[f"trial2_2mps_scale{scale:g}_online"] == ("trial2_noise0.3", drive, online)
+    assert len(runs) == 6
 
 
 def test_sim_table_shows_clean_rows_then_perturbed_rows():
@@ -67,11 +70,12 @@ def test_demo_prints_both_row_sets(tmp_path, capsys, monkeypatch):
     text = capsys.readouterr().out
     rows = {ln.split()[0]: ln for ln in text.splitlines() if ln.startswith("trial2_")}
     assert list(rows) == ["trial2_noise0.3", "trial2_noise0.3_perturbed", "trial2_2mps_scale1.01",
-                          "trial2_2mps_scale1.02"]
-    assert " map " in rows["trial2_noise0.3"] and "perturbed s1.02" in rows["trial2_2mps_scale1.02"]
+                          "trial2_2mps_scale1.01_online", "trial2_2mps_scale1.02", "trial2_2mps_scale1.02_online"]
+    assert " map " in rows["trial2_noise0.3"] and "perturbed s1.02" in rows["trial2_2mps_scale1.02_online"]
     summary = json.loads((out / "summary.json").read_text())
     assert "world_ct_error_m" not in summary["trial2_noise0.3"]  # the clean world: one truth
-    for label in ("trial2_noise0.3_perturbed", "trial2_2mps_scale1.01", "trial2_2mps_scale1.02"):
+    for label in ("trial2_noise0.3_perturbed", "trial2_2mps_scale1.01", "trial2_2mps_scale1.02",
+                  "trial2_2mps_scale1.02_online"):
         m = summary[label]
         assert m["false_recoveries"] == 0 and m["recoveries"] == 0
         # scored against both truths (which differ by (1 − 1/s)·|p − c|; the errors of a 2-s drive are mostly

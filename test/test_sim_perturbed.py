@@ -95,7 +95,7 @@ def localize(cfg, seed: int = 1, **overrides) -> dict:
     """``cfg`` localized with config/params.yaml (and parameter ``overrides``) from its /initialpose, scored after
     the first second: mean position error against the truth in the map frame ("map") and against the world-frame
     truth ("world") (m), Localizer recoveries, false recoveries (switches to a place > 1 m from the map-frame
-    truth). Cached: the tests below share runs."""
+    truth), the range scale in use at the end. Cached: the tests below share runs."""
     key = (cfg.key(), seed, tuple(sorted(overrides.items())))
     if key in _CACHE:
         return _CACHE[key]
@@ -109,7 +109,8 @@ def localize(cfg, seed: int = 1, **overrides) -> dict:
     err = compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
     world = compare_to_truth(t, poses, rec.truth_t, rec.world_truth_poses)
     _CACHE[key] = {"map": float(err.ct_error[err.t > 1.0].mean()), "world": float(world.ct_error[world.t > 1.0].mean()),
-                   "recoveries": loc.recoveries, "false_recoveries": false_recoveries(err.t, err.ct_error, t_start=0.0)}
+                   "recoveries": loc.recoveries, "false_recoveries": false_recoveries(err.t, err.ct_error, t_start=0.0),
+                   "range_scale": loc.range_scale}
     return _CACHE[key]
 
 
@@ -142,8 +143,32 @@ def test_a_calibrated_range_scale_removes_the_conflict_at_scale_1_02():
     assert r["map"] <= 0.03
 
 
-if __name__ == "__main__":  # the figures: errors without and with the perturbation, by scale
+def test_the_online_range_scale_follows_a_building_2_percent_larger_than_its_map():
+    # range_scale_estimation: no calibration, the scale is learnt while the filter tracks
+    r = localize(drive(replace(WORLD, scale=1.02)), range_scale_estimation=True)
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.03
+    assert r["range_scale"] == pytest.approx(1 / 1.02, abs=0.005)  # started at 1.0
+
+
+def test_the_online_range_scale_stays_at_one_where_the_world_matches_the_map_scale():
+    r = localize(drive(replace(WORLD, scale=1.0)), range_scale_estimation=True)
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0 and r["map"] <= 0.03
+    assert r["range_scale"] == pytest.approx(1.0, abs=0.003)
+
+
+if __name__ == "__main__":  # the figures: errors without and with the perturbation, by scale; range scale online
+    import sys
+    whole = "--whole" in sys.argv  # the whole of trial 2 at 2 m/s instead of the 12-s drive
+
+    def run(world):
+        return replace(trial_config("trial2_noise0.3", speed=2.0), world=world) if whole else drive(world)
     for world in (None, *(replace(WORLD, scale=s) for s in (1.0, 1.01, 1.02))):
-        print(world, localize(drive(world)))
-    print("scale 1.02, lidar_scale_to_map_scale 1/1.02",
-          localize(drive(replace(WORLD, scale=1.02)), lidar_scale_to_map_scale=1 / 1.02))
+        print(world, localize(run(world)))
+        if world is not None:
+            print("  range_scale_estimation", localize(run(world), range_scale_estimation=True))
+    for s in (1.01, 1.02):
+        print(f"scale {s}, lidar_scale_to_map_scale 1/{s}",
+              localize(run(replace(WORLD, scale=s)), lidar_scale_to_map_scale=1 / s))
+    print("scale 1.01 without glass, range_scale_estimation",
+          localize(run(replace(WORLD, scale=1.01, glass_fraction=0.0)), range_scale_estimation=True))

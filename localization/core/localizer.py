@@ -9,6 +9,8 @@ small part whose one job it is:
     MonteCarloLocalizer (filter)  motion update to the scan's time, sensor update, resampling
     GlobalSeeder                  where a global spread puts its particles
     RecoveryPolicy (recovery)     converged / tracking / lost, after each sensor update
+    RangeScaleEstimator           the lidar-to-map range scale, after each sensor update while tracking
+                                  (``range_scale_estimation``; core/range_scale.py)
 
 One clock: every time here is on the scan clock; an odometry stamp t_k becomes t_k +
 odom_time_offset once, in the timeline. A scan's time t_s is ``scan.scan_time`` (the middle of its
@@ -46,9 +48,10 @@ from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.policies import ScanQueue, UpdatePolicy, UpdatePolicyParams
+from localization.core.range_scale import RangeScaleEstimator
 from localization.core.recovery import RecoveryPolicy, SwitchGlide
 from localization.core.scan import ScanData, scan_time
-from localization.core.scan_step import ScanStep
+from localization.core.scan_step import ScanStep, deskew_offsets, usable_beams
 from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
@@ -108,6 +111,12 @@ class Localizer:
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
         self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
         self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
+        self._range_scale = None  # RangeScaleEstimator (range_scale_estimation with the beam model)
+        if p.range_scale_estimation:
+            if isinstance(self._pf.sensor_model, BeamModel):
+                self._range_scale = RangeScaleEstimator.from_parameters(p)
+            else:
+                self.log.warning("range_scale_estimation needs the beam sensor model: ignored")
         self.recoveries = 0
 
     has_map = property(lambda self: self.map is not None)
@@ -118,6 +127,12 @@ class Localizer:
     global_mode = property(lambda self: self._pf.kld_hold, doc="a global spread, not yet converged")
     laser_offset = property(lambda self: np.array(self._pf.sensor_model.laser_offset, dtype=float))
     waiting_scans = property(lambda self: len(self._queue), doc="scans waiting for odometry to reach them")
+
+    @property
+    def range_scale(self) -> float:
+        """The lidar-to-map range scale in use: the online estimate (``range_scale_estimation``), else
+        ``lidar_scale_to_map_scale``."""
+        return self.params.lidar_scale_to_map_scale if self._range_scale is None else self._range_scale.scale
 
     def particles(self) -> np.ndarray:  # a copy (N, 3)
         with self._lock:
@@ -156,6 +171,9 @@ class Localizer:
             ensure_compiled(self.params, self.log)
         with self._lock:
             self._pf.sensor_model.set_map(occupancy_map, prepared)
+            if self._range_scale is not None:  # a new map: its scale is learnt anew
+                self._range_scale.reset()
+                self._pf.sensor_model.set_range_scale(self._range_scale.scale)
             self.map, self.map_pending = occupancy_map, False
             self._recovery.set_map(occupancy_map, self._pf.sensor_model.laser_offset)
             if self._pf.initialized and occupancy_map.is_occupied_or_outside(self._pf.particles[:, :2]).all():
@@ -297,6 +315,9 @@ class Localizer:
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
+        if (self._range_scale is not None and out.estimate is not None and out.switched is None and not out.respread
+                and not self.global_mode and not self._recovery.holding):
+            self._update_range_scale(scan, t_s, out.estimate)
         published = None  # the last published pose carried to this scan, while a switch needs it
         if out.switched is not None or self._glide.active:
             carried = self._timeline.pose_at(t_s)
@@ -310,3 +331,20 @@ class Localizer:
             corrected = PoseEstimate(stamp=t_s, pose=pose, covariance=cov)
             self._timeline.set_anchor(corrected)
             self._newest = self._corrections.put(corrected)
+
+    def _update_range_scale(self, scan: ScanData, t_s: float, est) -> None:
+        """The range scale after a tracking sensor update: the scan's beams (as the update used them)
+        against the ranges ray cast at the estimate (``core.range_scale``)."""
+        p, model = self.params, self._pf.sensor_model
+        usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, lambda *args, **kwargs: None)
+        if usable is None:
+            return
+        b, rmin, rmax = usable
+        offsets = deskew_offsets(scan, t_s, b.indices, self._timeline.twist_at(t_s), model.laser_offset,
+                                 p.scan_stamp, p.scan_stamp_offset) if p.deskew else None
+        if offsets is not None and not (offsets.any() and np.all(np.isfinite(offsets))):
+            offsets = None
+        d = model.expected_ranges(est.pose[None, :], b.angles, offsets)[0]
+        if self._range_scale.update(b.ranges, d, rmin, model.max_range_for(rmax), model.table_range, est.covariance,
+                                    model.params.map_wall_depth):
+            model.set_range_scale(self._range_scale.scale)

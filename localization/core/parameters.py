@@ -197,6 +197,17 @@ PARAMETERS = [
           "s·z − map_wall_depth (s: lidar_scale_to_map_scale) against the ray cast to the edge; localization-calibrate "
           "estimates it (\"wall surface ... behind the free-space edge\")",
           lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
+    Param("range_scale_estimation", False, "beam model: estimate the lidar-to-map range scale online while the filter "
+          "tracks (core/range_scale.py): after each sensor update of a converged cloud, the least-squares ratio of "
+          "the ranges ray cast at the estimate to the measured ones, over the beams within a few centimetres of the "
+          "map, low-pass filtered (range_scale_alpha), kept within range_scale_bound of lidar_scale_to_map_scale "
+          "(its start value), replaces lidar_scale_to_map_scale. For a building a little larger or smaller than "
+          "its map; false: lidar_scale_to_map_scale as configured. The likelihood field ignores it",
+          lambda v: isinstance(v, bool), "true or false"),
+    Param("range_scale_alpha", 0.02, "range_scale_estimation: weight of each scan's ratio in the estimate (a time "
+          "constant of 1 / range_scale_alpha sensor updates)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),
+    Param("range_scale_bound", 0.05, "range_scale_estimation: the estimate stays within lidar_scale_to_map_scale x "
+          "(1 +- this)", lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
     Param("laser_offset_x", 0.275, "laser position ahead of base_link (m); racecar: 0.275", _finite, "finite"),
     Param("laser_offset_y", 0.0, "laser position left of base_link (m)", _finite, "finite"),
     Param("laser_offset_yaw", 0.0, "laser yaw relative to base_link (rad)", _finite, "finite"),

@@ -4,7 +4,8 @@
    reference lab report (odometry noise 0, 0.3, 0.6; ``localization.datasets``), and with
    ``--loop`` the longer loop with biased odometry; each twice: scans drawn from the map itself and
    from the perturbed world ``STANDARD_PERTURBATION`` (6 boxes, 4 people, 5 % glass, scale 1.01;
-   ``localization.sim.perturb``), plus trial 2 at 2 m/s in that world at scale 1.01 and 1.02
+   ``localization.sim.perturb``), plus trial 2 at 2 m/s in that world at scale 1.01 and 1.02, each
+   also replayed with the filter learning the range scale online (``_online``: ``range_scale_estimation``)
    (``--skip-perturbed``: the clean rows only). Errors are against the truth in the map frame
    (q = c + (p − c) / s, what a localizer in the map can report), the error against the car's pose in
    the world beside it; false recoveries: switches to a place > 1 m from the truth after the first second.
@@ -109,13 +110,19 @@ def _table(header: str, results: list, width: int, row) -> str:
     return "\n".join(lines)
 
 
+#: parameter overrides of the ``_online`` rows: the filter learns the building's range scale while it tracks
+ONLINE_SCALE = {"range_scale_estimation": True}
+
+
 def perturbed_runs(trials) -> dict:
     """The simulated trials' perturbed-world replays beside the clean ones, label -> (trial, ``SimConfig``
-    overrides): ``trials`` in ``STANDARD_PERTURBATION``, and trial 2 at 2 m/s in it at scale 1.01 and 1.02."""
-    runs = {f"{name}_perturbed": (name, {"world": STANDARD_PERTURBATION}) for name in trials}
+    overrides, parameter overrides): ``trials`` in ``STANDARD_PERTURBATION``, and trial 2 at 2 m/s in it at
+    scale 1.01 and 1.02, each with the configured range scale and with ``ONLINE_SCALE`` (label ``_online``)."""
+    runs = {f"{name}_perturbed": (name, {"world": STANDARD_PERTURBATION}, {}) for name in trials}
     for scale in (1.01, 1.02):
-        runs[f"trial2_2mps_scale{scale:g}"] = ("trial2_noise0.3", {"speed": 2.0, "world": replace(
-            STANDARD_PERTURBATION, scale=scale)})
+        drive = {"speed": 2.0, "world": replace(STANDARD_PERTURBATION, scale=scale)}
+        runs[f"trial2_2mps_scale{scale:g}"] = ("trial2_noise0.3", drive, {})
+        runs[f"trial2_2mps_scale{scale:g}_online"] = ("trial2_noise0.3", drive, ONLINE_SCALE)
     return runs
 
 
@@ -427,16 +434,16 @@ def main(argv=None) -> int:
     folds, calibrated = {}, {}
     if not args.skip_sim:
         names = list(REPORT_TRIALS) + (["loop_noise0.3_biased"] if args.loop else [])
-        runs = {name: (name, {}) for name in names}
+        runs = {name: (name, {}, {}) for name in names}
         if not args.skip_perturbed:
             runs.update(perturbed_runs(names))
-        for label, (name, changes) in runs.items():
+        for label, (name, changes, params) in runs.items():
             extra = {**changes, **({"duration": args.duration} if args.duration else {})}
             bag = sim_bag(name, log=lambda s: print(s, file=sys.stderr), **extra)
             world = changes.get("world")
             sim_jobs.append({"label": label, "trial": name, "bag": str(bag), "map": SIM_TRIALS[name].config.map,
-                             "params_file": str(sim_params), "overrides": overrides, "out": str(out / label),
-                             "world": None if world is None else asdict(world)})
+                             "params_file": str(sim_params), "overrides": {**overrides, **params},
+                             "out": str(out / label), "world": None if world is None else asdict(world)})
     if not args.skip_sim and not args.skip_fast:
         extra = {"duration": args.duration} if args.duration else {}
         bag = sim_bag(FAST_TRIAL, log=lambda s: print(s, file=sys.stderr), **extra)
@@ -505,7 +512,8 @@ def main(argv=None) -> int:
               "second; 'report' = the reference lab report's mean CT error. world: map = scans drawn from the map, "
               f"perturbed = from the map with {w.boxes} boxes, {w.people} people, {w.glass_fraction:.0%} glass "
               "walls, scale s about the route's centroid (localization.sim.perturb.STANDARD_PERTURBATION); "
-              "trial2_2mps_*: trial 2 at 2 m/s (targets: mean <= 0.03, no false recovery)")
+              "trial2_2mps_*: trial 2 at 2 m/s; *_online: the same with range_scale_estimation true (the filter "
+              "learns the range scale while it tracks) (targets: mean <= 0.03, no false recovery)")
         print(sim_table(sim_res))
     if fast_res:
         print(f"\nFast trial (6-7 m/s, odometry 40 ms late, lidar sweep timing; config/params.yaml, {n} particles): "

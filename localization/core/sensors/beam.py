@@ -234,6 +234,11 @@ class BeamModel(LaserMount):
         k = int(np.rint(self.max_range_for(range_max) * p.lidar_scale_to_map_scale / p.table_resolution))
         return min(max(k, 1), self.z_max)
 
+    def set_range_scale(self, scale: float) -> None:
+        """Use ``scale`` as lidar_scale_to_map_scale (an online estimate, ``core.range_scale``); the
+        tables, which do not depend on it, are kept."""
+        self.params = replace(self.params, lidar_scale_to_map_scale=float(scale))
+
     # ------------------------------------------------------------------ the map
     def preparation(self, occupancy_map: OccupancyMap) -> Preparation:
         """Whether ``prepare`` will build a range table (seconds: prepare off-thread), and a note."""
