@@ -234,6 +234,15 @@ def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
     play_past_tf_timeout(r, drive)
     assert np.allclose(r.node.localizer.laser_offset, [0.2, 0.0, 0.0])
     assert r.node.diagnostic_status().values["laser pose"] == "laser_offset_* parameters"
+    assert r.node.diagnostic_status().values["range scale"] == "1.0000 (lidar_scale_to_map_scale)"
+
+
+def test_diagnostics_show_the_range_scale_learnt_online(runner, drive):
+    r = runner(range_scale_estimation=True, lidar_scale_to_map_scale=0.99)
+    play_past_tf_timeout(r, drive)
+    value = r.node.diagnostic_status().values["range scale"]
+    assert value.endswith("(learnt online)") and abs(float(value.split()[0]) - 0.99) < 0.0495  # within the bound
+    assert float(value.split()[0]) == round(r.node.localizer.range_scale, 4)
 
 
 def test_broken_tf_tree_is_a_diagnostics_warning(runner, drive):

@@ -532,6 +532,8 @@ class LocalizationMixin:
                                        "parameters": "laser_offset_* parameters"}.get(self._laser_source,
                                                                                       "not decided yet")
         status.values["recoveries"] = str(loc.recoveries)
+        status.values["range scale"] = f"{loc.range_scale:.4f} " + (
+            "(learnt online)" if self.params.range_scale_estimation else "(lidar_scale_to_map_scale)")
         return status
 
     def _report_worker_drops(self) -> None:
