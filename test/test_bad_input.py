@@ -212,3 +212,20 @@ def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):
     assert loc.on_odometry(TwistData(-2.0, 1.0, 0.0, 0.0)) is None  # one stamp 3 s back (corrupted, not a loop)
     est = loc.on_odometry(TwistData(1.06, 1.0, 0.0, 0.0))  # continues from 1.02: 0.04 s of motion
     assert est is not None and abs(est.pose[0] - x0 - 0.06) < 0.02
+
+
+
+def test_the_localizer_says_why_it_could_not_use_a_scan():
+    loc = Localizer(Parameters(num_particles=100, ray_caster="exact"))
+    scan = ScanData(1.0, np.full(100, 2.0), -1.0, 1.0, 0.02, 0.1, 10.0)
+    loc.on_scan(scan)
+    assert loc.scan_ignored == "not ready"  # no map
+    loc.begin_map_preparation()  # a map prepared off-thread, none installed yet
+    loc.on_scan(scan)
+    assert loc.scan_ignored == "map pending"
+    loc.set_map(corridor_map())
+    loc.on_scan(scan)
+    assert loc.scan_ignored == "not ready"  # a map, no initial pose
+    loc.set_initial_pose(np.array([2.0, 0.0, 0.0]), stamp=0.5)
+    loc.on_scan(scan)
+    assert loc.scan_ignored is None  # taken (it waits for odometry)

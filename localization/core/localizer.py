@@ -118,6 +118,9 @@ class Localizer:
             else:
                 self.log.warning("range_scale_estimation needs the beam sensor model: ignored")
         self.recoveries = 0
+        # why the last on_scan could not use its scan: "map pending" (no map yet, the sensor model is
+        # preparing one), "not ready" (no map, or no initial pose), None (taken, or refused for its content)
+        self.scan_ignored: str | None = None
 
     has_map = property(lambda self: self.map is not None)
     ready = property(lambda self: self.map is not None and self._pf.initialized)
@@ -292,7 +295,9 @@ class Localizer:
             return self.warn(key, problem)
         with self._lock:
             if not self.ready:
+                self.scan_ignored = "map pending" if self.map_pending else "not ready"
                 return self.warn("scan-not-ready", waiting(self, "scan ignored"), logging.INFO)
+            self.scan_ignored = None
             latest = self._timeline.latest
             t_s = self.scan_time(scan) if self.params.align_odometry or latest is None else latest
             if latest is not None and t_s < latest - self.params.odom_max_gap:

@@ -450,24 +450,24 @@ class LocalizationMixin:
         if isinstance(msg, (bytes, bytearray, memoryview)):
             msg = deserialize_message(bytes(msg), LaserScan)
         t_deser = time.monotonic()
-        building = self.localizer.map_pending and not self.localizer.has_map
-        if building:
-            self.watchdog.scans_waiting_for_table += 1
         self.stamps.remember(msg.header.stamp)
         scan = scan_from_msg(msg)
         if self._laser_source is None or self._laser_source == "parameters" and self._laser_lookup is not None:
             self._resolve_laser_pose(scan.frame_id, t_start)
         t_conv = time.monotonic()
         t_s = self.localizer.scan_time(scan)
-        if not self.localizer.ready:  # no map, range table being built, or no initial pose: not usable
-            self.watchdog.scans_not_used(t_conv, 1, "while the range table was prepared" if building
-                                         else f"while waiting for {self.waiting_for()}")
-        elif math.isfinite(t_s):
+        if self.localizer.ready and math.isfinite(t_s):
             with self._pose_out_lock:  # the scan's way so far, until its correction is published
                 self._scan_times[t_s] = (t_put, t_start, t_deser, t_conv)
                 while len(self._scan_times) > SCAN_TIMES_KEPT:
                     del self._scan_times[next(iter(self._scan_times))]
         self.localizer.on_scan(scan)  # not ready: it says why (throttled)
+        ignored = self.localizer.scan_ignored  # the localizer's own decision (only this thread feeds scans)
+        if ignored is not None:  # no map, range table being built, or no initial pose: not usable
+            building = ignored == "map pending"
+            self.watchdog.scans_waiting_for_table += int(building)
+            self.watchdog.scans_not_used(t_conv, 1, "while the range table was prepared" if building
+                                         else f"while waiting for {self.waiting_for()}")
         if self.live_view is not None:
             self.live_view(scan, self.localizer)
         if math.isfinite(scan.stamp):
