@@ -51,8 +51,8 @@ from localization.core.policies import ScanQueue, UpdatePolicy, UpdatePolicyPara
 from localization.core.range_scale import RangeScaleEstimator
 from localization.core.recovery import RecoveryPolicy, SwitchGlide
 from localization.core.scan import ScanData, scan_time
-from localization.core.scan_step import ScanStep, deskew_offsets, usable_beams
-from localization.core.sensors.beam import BeamModel, BeamModelParams
+from localization.core.scan_step import ScanStep, StepOutcome
+from localization.core.sensors.beam import BeamModel, BeamModelParams, sweep_offsets
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
 from localization.core.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
@@ -322,7 +322,7 @@ class Localizer:
             self._spread_locked(t_s)
         if (self._range_scale is not None and out.estimate is not None and out.switched is None and not out.respread
                 and not self.global_mode and not self._recovery.holding):
-            self._update_range_scale(scan, t_s, out.estimate)
+            self._update_range_scale(out)
         published = None  # the last published pose carried to this scan, while a switch needs it
         if out.switched is not None or self._glide.active:
             carried = self._timeline.pose_at(t_s)
@@ -337,19 +337,12 @@ class Localizer:
             self._timeline.set_anchor(corrected)
             self._newest = self._corrections.put(corrected)
 
-    def _update_range_scale(self, scan: ScanData, t_s: float, est) -> None:
-        """The range scale after a tracking sensor update: the scan's beams (as the update used them)
-        against the ranges ray cast at the estimate (``core.range_scale``)."""
-        p, model = self.params, self._pf.sensor_model
-        usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, lambda *args, **kwargs: None)
-        if usable is None:
-            return
-        b, rmin, rmax = usable
-        offsets = deskew_offsets(scan, t_s, b.indices, self._timeline.twist_at(t_s), model.laser_offset,
-                                 p.scan_stamp, p.scan_stamp_offset) if p.deskew else None
-        if offsets is not None and not (offsets.any() and np.all(np.isfinite(offsets))):
-            offsets = None
-        d = model.expected_ranges(est.pose[None, :], b.angles, offsets)[0]
-        if self._range_scale.update(b.ranges, d, rmin, model.max_range_for(rmax), model.table_range, est.covariance,
-                                    model.params.map_wall_depth):
+    def _update_range_scale(self, out: StepOutcome) -> None:
+        """The range scale after a tracking sensor update: the beams that update used (deskewed as it
+        deskewed them) against the ranges ray cast at its estimate (``core.range_scale``)."""
+        model, (rmin, rmax), beams = self._pf.sensor_model, out.range_limits, out.beams
+        offsets = sweep_offsets(out.offsets, beams.ranges.size)  # as the sensor update casts them
+        d = model.expected_ranges(out.estimate.pose[None, :], beams.angles, offsets)[0]
+        if self._range_scale.update(beams.ranges, d, rmin, model.max_range_for(rmax), model.table_range,
+                                    out.estimate.covariance, model.params.map_wall_depth):
             model.set_range_scale(self._range_scale.scale)

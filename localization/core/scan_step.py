@@ -31,7 +31,7 @@ from localization.core.global_seeder import GlobalSeeder
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.policies import UpdatePolicy
 from localization.core.recovery import RecoveryPolicy
-from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
+from localization.core.scan import Scan, ScanData, downsample_scan, first_beam_time, sweep_increment
 from localization.core.timeline import OdometryTimeline
 
 
@@ -40,6 +40,10 @@ class StepOutcome:
     estimate: Estimate | None = None  # after a sensor update (None: no update)
     respread: bool = False  # every particle impossible, scan after scan: spread the particles globally
     switched: Estimate | None = None  # a challenger won: the cloud moved there (its estimate)
+    # with an estimate: the scan's beams the update used, their range limits (m) and deskew offsets
+    beams: Scan | None = None
+    range_limits: tuple[float, float] | None = None
+    offsets: np.ndarray | None = None  # (B, 3); None: a rigid scan
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
@@ -134,7 +138,8 @@ class ScanStep:
         if verdict.message:
             self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
         return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
-                                                                  verdict.agreement, distance))
+                                                                  verdict.agreement, distance),
+                           beams=b, range_limits=(rmin, rmax), offsets=offsets)
 
     def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float,
                    distance: float):

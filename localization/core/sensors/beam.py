@@ -132,6 +132,17 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
     return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
 
 
+def sweep_offsets(offsets, num_beams: int):
+    """``offsets`` as (``num_beams``, 3) per-beam deskew offsets, or None (a rigid scan) when there are
+    none, they are all zero (no motion during the sweep) or unusable (wrong count, non-finite)."""
+    if offsets is None:
+        return None
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+    if offsets.shape[0] != num_beams or not offsets.any() or not np.all(np.isfinite(offsets)):
+        return None
+    return offsets
+
+
 class BeamModel(LaserMount):
     """The beam model (the course's ``SensorModel``). ``BeamModel(**overrides)`` or
     ``BeamModel(params)``; ``laser_offset=(x, y, yaw)`` is accepted for the three offsets.
@@ -341,11 +352,7 @@ class BeamModel(LaserMount):
         observation = np.asarray(observation, dtype=float).ravel()
         if angles is None:
             angles = self.default_angles(observation.size)
-        if offsets is not None:
-            offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
-            if offsets.shape[0] != observation.size or not offsets.any() or not np.all(np.isfinite(offsets)):
-                offsets = None  # no motion during the sweep (or unusable offsets): a rigid scan
-        return particles, observation, np.asarray(angles, dtype=float).ravel(), offsets
+        return particles, observation, np.asarray(angles, dtype=float).ravel(), sweep_offsets(offsets, observation.size)
 
     def log_likelihood(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """Squashed log weights (N,): sum over beams of log p(z|d), divided by squash_factor;
