@@ -75,5 +75,6 @@ def test_a_spread_cloud_or_too_few_beams_do_not_move_the_scale():
 def test_the_likelihood_field_ignores_it_with_one_log_line(caplog):
     with caplog.at_level(logging.WARNING):
         loc = Localizer(Parameters(sensor_model="likelihood_field", range_scale_estimation=True))
-    assert loc.range_scale == loc.params.lidar_scale_to_map_scale
+    assert loc.range_scale == loc.params.lidar_scale_to_map_scale and not loc.range_scale_online
+    assert Localizer(Parameters(range_scale_estimation=True)).range_scale_online
     assert sum("range_scale_estimation" in r.getMessage() for r in caplog.records) == 1

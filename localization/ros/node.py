@@ -533,7 +533,7 @@ class LocalizationMixin:
                                                                                       "not decided yet")
         status.values["recoveries"] = str(loc.recoveries)
         status.values["range scale"] = f"{loc.range_scale:.4f} " + (
-            "(learnt online)" if self.params.range_scale_estimation else "(lidar_scale_to_map_scale)")
+            "(learnt online)" if loc.range_scale_online else "(lidar_scale_to_map_scale)")
         return status
 
     def _report_worker_drops(self) -> None:
