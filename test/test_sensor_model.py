@@ -244,3 +244,65 @@ def test_wall_depth_scores_a_return_as_ending_that_far_behind_the_free_space_edg
     behind = np.where(seen < LIDAR_5_6 - 0.1, (seen + 0.03) / 0.99, np.inf)
     assert deep.log_likelihood(true, behind, angles, range_max=LIDAR_5_6)[0] > \
         flat.log_likelihood(true, behind, angles, range_max=LIDAR_5_6)[0]
+
+
+def _window_scene(**kw):
+    """A corridor, a cloud near (6, 1.5, 0) and a scan from there whose beams 20-27 pass through a window: they
+    read 0.4 m longer than the wall the map has."""
+    m = long_corridor()
+    sm = SensorModel(ray_caster="lookup_table", scan_theta_discretization=36, laser_offset=(0.275, 0.0, 0.0),
+                     beam_skip_distance=0.15, occupancy_map=m, **kw)
+    rng = np.random.default_rng(11)
+    particles = np.column_stack([rng.normal(6.0, 0.05, 300), rng.normal(1.5, 0.05, 300), rng.normal(0.0, 0.02, 300)])
+    angles = np.linspace(-2.35, 2.35, 60)
+    clean = sm.expected_ranges(np.array([[6.0, 1.5, 0.0]]), angles)[0] + rng.normal(0.0, 0.02, angles.size)
+    window = clean.copy()
+    window[20:28] += 0.4
+    return sm, particles, angles, clean, window
+
+
+@pytest.mark.parametrize("deskew", [False, True])
+def test_beam_skipping_kernel_equals_the_numpy_reference(tmp_path, monkeypatch, deskew):
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    sm, particles, angles, _, window = _window_scene(do_beamskip=True)
+    particles[:5] = [[-3.0, 1.5, 0.0], [6.0, 0.02, 0.0], [6.0, 1.5, 0.0], [30.0, 1.5, 0.0], [np.nan, 1.5, 0.0]]
+    offsets = np.column_stack([np.linspace(0.0, 0.05, 60), np.zeros(60), np.linspace(0.0, 0.01, 60)]) if deskew \
+        else None
+    fast = sm.log_likelihood(particles, window, angles, offsets, range_max=8.0)
+    used = sm.last_beams_used
+    ref = sm.log_likelihood_numpy(particles, window, angles, offsets, range_max=8.0)
+    assert sm.last_beams_used == used and 40 <= used <= 60 - 8  # the window's beams (at least) left out
+    assert np.array_equal(np.isneginf(fast), np.isneginf(ref)) and np.isfinite(ref).sum() >= 295
+    np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-12, atol=1e-12)
+
+
+def test_beam_skipping_leaves_a_window_out_of_every_particle_s_weight(tmp_path, monkeypatch):
+    """Readings through a window (longer than any particle expects) favour the particles expecting the longest
+    range; skipped, they weigh nothing: the weights are those of the scan without them."""
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    sm, particles, angles, clean, window = _window_scene(do_beamskip=True)
+    plain, _, _, _, _ = _window_scene()
+    skipped = sm.log_likelihood(particles, window, angles, range_max=8.0)
+    used = sm.last_beams_used
+    kept = np.ones(angles.size, dtype=bool)
+    kept[20:28] = False
+    on_the_rest = sm.log_likelihood(particles, window[kept], angles[kept], range_max=8.0)
+    assert sm.last_beams_used == used >= kept.sum() - 3  # the same few grazing beams skipped, not the window
+    np.testing.assert_allclose(skipped, on_the_rest, rtol=1e-12, atol=1e-12)
+    unskipped = plain.log_likelihood(particles, window, angles, range_max=8.0)
+    rel = lambda w: w - w.max()  # noqa: E731 - relative log weights
+    assert np.abs(rel(unskipped) - rel(plain.log_likelihood(particles, window[kept], angles[kept],
+                                                            range_max=8.0))).max() > 0.5  # the window moves them
+
+
+def test_beam_skipping_uses_every_beam_when_the_cloud_explains_too_few(tmp_path, monkeypatch):
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    sm, particles, angles, _, window = _window_scene(do_beamskip=True, beam_skip_error_threshold=0.1)
+    everything, _, _, _, _ = _window_scene()
+    out = sm.log_likelihood(particles, window, angles, range_max=8.0)  # 8 of 60 skipped would be >= 10 %: all used
+    assert sm.last_beams_used == angles.size
+    np.testing.assert_allclose(out, everything.log_likelihood(particles, window, angles, range_max=8.0), rtol=1e-12)
+    spread = particles.copy()
+    spread[:, 0] = np.linspace(1.0, 24.0, len(spread))  # along the whole corridor: no beam has a majority
+    assert np.isfinite(sm.log_likelihood(spread, window, angles, range_max=8.0)).all()
+    assert sm.last_beams_used == angles.size

@@ -301,12 +301,14 @@ PARAMETERS = [
           "expected ranges there and caps z_max at its table's reach (table_width - 1) x table_resolution; the "
           "likelihood field skips those beams and uses z_max in its uniform density lf_z_rand / z_max",
           _finite, "finite (<= 0: the scan's range_max)"),
-    Param("do_beamskip", False, "likelihood_field: ignore beams whose end points lie near an obstacle for less than "
-          "beam_skip_threshold of the particles (unmapped obstacles), as nav2_amcl", lambda v: isinstance(v, bool),
+    Param("do_beamskip", False, "leave out of each sensor update the beams that agree with the map for at most "
+          "beam_skip_threshold of the particles (returns from things the map does not have: people, boxes, windows "
+          "the beam passes through), as nav2_amcl; both sensor models", lambda v: isinstance(v, bool),
           "true or false"),
-    Param("beam_skip_distance", 0.5, "do_beamskip: an end point closer than this (m) to an obstacle agrees with the "
-          "map", _positive, "> 0"),
-    Param("beam_skip_threshold", 0.3, "do_beamskip: a beam is used when at least this fraction of the particles "
+    Param("beam_skip_distance", 0.5, "do_beamskip: a beam agrees with the map for a particle when its end point lies "
+          "closer than this (m) to an obstacle (likelihood_field), or its measured range lies within this of the "
+          "range ray cast from the particle (beam model)", _positive, "> 0"),
+    Param("beam_skip_threshold", 0.3, "do_beamskip: a beam is used when more than this fraction of the particles "
           "agree on it", _fraction, "in [0, 1]"),
     Param("beam_skip_error_threshold", 0.9, "do_beamskip: when this fraction of the beams would be skipped the "
           "cloud is off: all beams are used", _fraction, "in [0, 1]"),

@@ -20,6 +20,16 @@ fallback (``max_range``); ``resolve_max_range`` is that rule.
 expected ranges, tabulated. ``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood
 field (each beam's end point scored by its distance to the nearest occupied cell; no ray casting).
 The ``sensor_model`` parameter picks one (``localizer.build_filter``); docs/models.md compares them.
+
+Beam skipping (``do_beamskip``, nav2_amcl's rule, both models): a return from something the map does not
+have (a person, a box, a window the beam passes through) agrees with the map for few particles. With
+v_b the particles for which beam b agrees with the map (the model says what "agrees" means) and V the
+particles that can see (not off the map, not in a wall):
+
+    used_b = v_b / V > beam_skip_threshold
+    every beam is used when the skipped ones reach beam_skip_error_threshold of them (the cloud is off)
+
+The same beams are used for every particle (``beam_mask``), so skipping never favours one.
 """
 from __future__ import annotations
 
@@ -53,6 +63,18 @@ class Preparation:
 
     slow: bool  # seconds of work (a range table to build): prepare off the caller's thread
     note: str  # one line for the log, e.g. "range table: loading it from the cache for the map ..."
+
+
+def beam_mask(votes: np.ndarray, voters: int, threshold: float, error_threshold: float) -> np.ndarray:
+    """(B,) the beams used by beam skipping (module docstring): ``votes`` (B,) particles agreeing on each
+    beam out of ``voters``; all beams when nobody votes or the skipped ones reach ``error_threshold``."""
+    votes = np.asarray(votes)
+    if voters == 0:
+        return np.ones(votes.size, dtype=bool)
+    mask = votes / voters > threshold
+    if votes.size - mask.sum() >= votes.size * error_threshold:
+        return np.ones(votes.size, dtype=bool)
+    return mask
 
 
 def resolve_max_range(laser_max_range: float, range_max: float | None, fallback: float) -> float:

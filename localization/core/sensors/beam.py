@@ -41,6 +41,14 @@ With the lookup-table caster (the default) one compiled pass per particle does i
 pose, table row, interpolated range, table index, log sum — with no (N, B) temporaries
 (``_fused_kernel``); ``log_likelihood_numpy`` is its numpy reference, asserted equal in the tests.
 
+Beam skipping (``do_beamskip``; the rule in ``localization.core.sensors``): a particle explains beam
+b when |z_b − d_b| ≤ ``beam_skip_distance`` (both in table cells, z_b as scored above); beams that
+at most ``beam_skip_threshold`` of the particles explain are left out of every particle's sum. A
+return the map cannot have, e.g. through a window, is scored on the hit Gaussian's tail, where it
+favours whichever pose expects the longest range; left out, it favours none. The fused kernel then
+also writes each particle's table columns (``cols_out``, (N, B)) and the sum over the used beams is
+taken in numpy.
+
 Deskew (a sweeping lidar): beam b is measured from the laser pose L_b = L ⊕ δ_b, where L is the
 laser pose at the scan's reference time and δ_b = (dx_b, dy_b, dθ_b) the laser's own motion until
 beam b's time, in the laser frame (the same for every particle: ``offsets``). Each beam is cast
@@ -61,7 +69,7 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
 from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
@@ -93,6 +101,10 @@ class BeamModelParams:
     ray_caster: str = default("ray_caster", course=True)
     scan_theta_discretization: int = default("scan_theta_discretization", course=True)
     range_table_lazy_cells: int = default("range_table_lazy_cells", course=True)  # larger maps: table per tile
+    do_beamskip: bool = default("do_beamskip", course=True)  # leave out beams few particles explain
+    beam_skip_distance: float = default("beam_skip_distance", course=True)  # m: |s·z − o − d| that explains a beam
+    beam_skip_threshold: float = default("beam_skip_threshold", course=True)  # share of particles
+    beam_skip_error_threshold: float = default("beam_skip_error_threshold", course=True)  # share of beams
 
     @classmethod
     def from_parameters(cls, params) -> "BeamModelParams":
@@ -162,6 +174,7 @@ class BeamModel(LaserMount):
         self.map: OccupancyMap | None = None
         self.ray_caster: RayCaster | None = None
         self._tables: dict = {}  # z_max row k -> (table, log table) of rows/columns 0 … k
+        self.last_beams_used: int | None = None  # beams used by the last evaluation (do_beamskip leaves some out)
         self.precompute_sensor_model()
         if occupancy_map is not None:
             self.set_map(occupancy_map)
@@ -374,8 +387,23 @@ class BeamModel(LaserMount):
             angles = angles + offsets[:, 2]
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
+        cols = np.empty((particles.shape[0] if p.do_beamskip else 0, angles.size), dtype=np.int32)
         _fused_kernel(particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
-                      1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out)
+                      1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
+        if p.do_beamskip:
+            return self._skipped_sum(log_rows, self.measured_to_cells(observation, k), cols, np.isfinite(out))
+        self.last_beams_used = angles.size
+        return out
+
+    def _skipped_sum(self, log_rows, z, cols, valid) -> np.ndarray:
+        """Squashed log weights (N,) over the beams beam skipping uses (module docstring): ``log_rows`` (B, k + 1),
+        ``z`` (B,) measured rows, ``cols`` (N, B) expected columns, ``valid`` (N,) particles that can see."""
+        p = self.params
+        agree = np.abs(cols[valid] - z[None, :]) <= p.beam_skip_distance / p.table_resolution
+        used = beam_mask(agree.sum(axis=0), int(valid.sum()), p.beam_skip_threshold, p.beam_skip_error_threshold)
+        self.last_beams_used = int(used.sum())
+        out = np.full(cols.shape[0], -np.inf)
+        out[valid] = log_rows[np.flatnonzero(used)[None, :], cols[valid][:, used]].sum(axis=1) / p.squash_factor
         return out
 
     def log_likelihood_numpy(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
@@ -384,8 +412,12 @@ class BeamModel(LaserMount):
         k = self.z_max_row(range_max)
         z = self.measured_to_cells(observation, k)
         d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
+        bad = self.map.is_occupied_or_outside(particles[:, :2])
+        if self.params.do_beamskip:
+            return self._skipped_sum(self.log_table(k)[z], z, d, ~bad)
         log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
-        log_w[self.map.is_occupied_or_outside(particles[:, :2])] = -np.inf
+        log_w[bad] = -np.inf
+        self.last_beams_used = z.size
         return log_w
 
     def evaluate(self, particles, observation, angles=None, range_max=None) -> np.ndarray:
@@ -398,11 +430,13 @@ if HAVE_NUMBA:
     @njit(cache=True, nogil=True)
     def _fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
                       occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
-                      bins_per_metre, z_max, log_rows, squash_factor, out):  # pragma: no cover - compiled
+                      bins_per_metre, z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
         """out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for particles off the map
         or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b (columns
         0 … z_max); (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, map
-        cells; ``bins_per_metre``: 1 / table_resolution."""
+        cells; ``bins_per_metre``: 1 / table_resolution. ``cols_out`` (N, B), unless it has no rows:
+        also each particle's table column d_b (rows of impossible particles are left unwritten)."""
+        write = cols_out.shape[0] > 0
         n_bins = table.shape[1]
         h, w = occupied.shape
         n_beams = beam_f.size
@@ -434,6 +468,9 @@ if HAVE_NUMBA:
                                                     map_yaw, index, n_bins)
             if cell < 0:
                 out[i] = blind / squash_factor
+                if write:
+                    for b in range(n_beams):
+                        cols_out[i, b] = 0
                 continue
             beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
                         q1s, cells)
@@ -444,7 +481,10 @@ if HAVE_NUMBA:
             for b in range(n_beams):
                 d = (cells[b] * resolution) * bins_per_metre  # map metres, then table cells as BeamModel.to_cells
                 d = z_max if d > z_max else d
-                total += log_rows[b, int(np.rint(d))]
+                col = int(np.rint(d))
+                total += log_rows[b, col]
+                if write:
+                    cols_out[i, b] = col
             out[i] = total / squash_factor
 else:  # pragma: no cover
     _fused_kernel = None

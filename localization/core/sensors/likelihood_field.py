@@ -64,7 +64,7 @@ import numpy as np
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast.kernels import HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range
 
 if HAVE_NUMBA:
     from numba import njit
@@ -288,15 +288,8 @@ class LikelihoodFieldModel(LaserMount):
         return out
 
     def _beam_mask(self, votes: np.ndarray, voters: int) -> np.ndarray:
-        """nav2's beam skipping: use beams agreed on by more than beam_skip_threshold of the voters;
-        all beams when the skipped ones reach beam_skip_error_threshold of them."""
-        p = self.params
-        if voters == 0:
-            return np.ones(votes.size, dtype=bool)
-        mask = votes / voters > p.beam_skip_threshold
-        if votes.size - mask.sum() >= votes.size * p.beam_skip_error_threshold:
-            return np.ones(votes.size, dtype=bool)
-        return mask
+        """nav2's beam skipping (``sensors.beam_mask``)."""
+        return beam_mask(votes, voters, self.params.beam_skip_threshold, self.params.beam_skip_error_threshold)
 
     def log_likelihood_numpy(self, particles, ranges, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """``log_likelihood`` in numpy, (N, B) temporaries: the reference of the compiled kernels."""
