@@ -19,7 +19,7 @@ def _metrics(mean, world=None, recoveries=0, false=0):
     return m
 
 
-def test_perturbed_runs_are_the_standard_world_and_two_2mps_drives():
+def test_perturbed_runs_are_the_standard_world_and_2mps_drives():
     runs = D.perturbed_runs(["trial1_noise0", "trial2_noise0.3"])
     assert runs["trial1_noise0_perturbed"] == ("trial1_noise0", {"world": STANDARD_PERTURBATION}, {})
     assert runs["trial2_noise0.3_perturbed"] == ("trial2_noise0.3", {"world": STANDARD_PERTURBATION}, {})
@@ -29,7 +29,9 @@ def test_perturbed_runs_are_the_standard_world_and_two_2mps_drives():
         # the same recording, the filter learning the range scale online
         online = {"range_scale_estimation": True}
         assert runs[f"trial2_2mps_scale{scale:g}_online"] == ("trial2_noise0.3", drive, online)
-    assert len(runs) == 6
+    # every trial at 2 m/s in the standard world
+    assert runs["trial1_2mps_scale1.01"] == ("trial1_noise0", {"speed": 2.0, "world": STANDARD_PERTURBATION}, {})
+    assert len(runs) == 7
 
 
 def test_sim_table_shows_clean_rows_then_perturbed_rows():

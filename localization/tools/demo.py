@@ -116,9 +116,14 @@ ONLINE_SCALE = {"range_scale_estimation": True}
 
 def perturbed_runs(trials) -> dict:
     """The simulated trials' perturbed-world replays beside the clean ones, label -> (trial, ``SimConfig``
-    overrides, parameter overrides): ``trials`` in ``STANDARD_PERTURBATION``, and trial 2 at 2 m/s in it at
-    scale 1.01 and 1.02, each with the configured range scale and with ``ONLINE_SCALE`` (label ``_online``)."""
+    overrides, parameter overrides): ``trials`` in ``STANDARD_PERTURBATION`` at their own speeds and at 2 m/s
+    (label ``trialN_2mps_scale1.01``), and trial 2 at 2 m/s at scale 1.01 and 1.02 also with ``ONLINE_SCALE``
+    (label ``_online``)."""
     runs = {f"{name}_perturbed": (name, {"world": STANDARD_PERTURBATION}, {}) for name in trials}
+    for name in trials:
+        if name.startswith("trial") and name != "trial2_noise0.3":  # the report's trials (trial 2: below)
+            drive = {"speed": 2.0, "world": STANDARD_PERTURBATION}
+            runs[f"{name.split('_')[0]}_2mps_scale{STANDARD_PERTURBATION.scale:g}"] = (name, drive, {})
     for scale in (1.01, 1.02):
         drive = {"speed": 2.0, "world": replace(STANDARD_PERTURBATION, scale=scale)}
         runs[f"trial2_2mps_scale{scale:g}"] = ("trial2_noise0.3", drive, {})
@@ -512,7 +517,8 @@ def main(argv=None) -> int:
               "second; 'report' = the reference lab report's mean CT error. world: map = scans drawn from the map, "
               f"perturbed = from the map with {w.boxes} boxes, {w.people} people, {w.glass_fraction:.0%} glass "
               "walls, scale s about the route's centroid (localization.sim.perturb.STANDARD_PERTURBATION); "
-              "trial2_2mps_*: trial 2 at 2 m/s; *_online: the same with range_scale_estimation true (the filter "
+              "trialN_2mps_*: trial N at 2 m/s (the others at their own speeds); *_online: the same with "
+              "range_scale_estimation true (the filter "
               "learns the range scale while it tracks) (targets: mean <= 0.03, no false recovery)")
         print(sim_table(sim_res))
     if fast_res:
