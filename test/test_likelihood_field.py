@@ -112,7 +112,9 @@ def _random_case(seed, n=3000, beams=60):
 @pytest.mark.parametrize("beamskip", [False, True])
 def test_compiled_kernel_equals_the_numpy_reference(beamskip):
     m, particles, ranges, angles = _random_case(1)
-    model = LikelihoodFieldModel(do_beamskip=beamskip, laser_max_range=8.0, occupancy_map=m)
+    # half the particles spread over the map: beam_skip_max_spread lifted so that they are skipped all the same
+    model = LikelihoodFieldModel(do_beamskip=beamskip, beam_skip_max_spread=100.0, laser_max_range=8.0,
+                                 occupancy_map=m)
     fast = model.log_likelihood(particles, ranges, angles)
     used_fast = model.last_beams_used
     ref = model.log_likelihood_numpy(particles, ranges, angles)
@@ -121,6 +123,15 @@ def test_compiled_kernel_equals_the_numpy_reference(beamskip):
     assert not np.isnan(fast).any()
     if beamskip:  # half the particles near the truth: the five cluttered beams are skipped, not more
         assert used_fast is not None and used_fast < np.isfinite(ranges).sum()
+
+
+def test_beam_skipping_waits_for_a_cloud_of_one_hypothesis():
+    m, particles, ranges, angles = _random_case(1)  # half near the truth, half spread over the map
+    model = LikelihoodFieldModel(do_beamskip=True, laser_max_range=8.0, occupancy_map=m)  # spread limit 1 m
+    plain = LikelihoodFieldModel(laser_max_range=8.0, occupancy_map=m)
+    np.testing.assert_array_equal(model.log_likelihood(particles, ranges, angles),
+                                  plain.log_likelihood(particles, ranges, angles))
+    assert model.last_beams_used == np.isfinite(ranges).sum()
 
 
 def test_beam_skipping_drops_the_unmapped_obstacle_and_keeps_everything_when_the_cloud_is_off():

@@ -264,7 +264,7 @@ def _window_scene(**kw):
 @pytest.mark.parametrize("deskew", [False, True])
 def test_beam_skipping_kernel_equals_the_numpy_reference(tmp_path, monkeypatch, deskew):
     monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
-    sm, particles, angles, _, window = _window_scene(do_beamskip=True)
+    sm, particles, angles, _, window = _window_scene(do_beamskip=True, beam_skip_max_spread=100.0)  # outliers below
     particles[:5] = [[-3.0, 1.5, 0.0], [6.0, 0.02, 0.0], [6.0, 1.5, 0.0], [30.0, 1.5, 0.0], [np.nan, 1.5, 0.0]]
     offsets = np.column_stack([np.linspace(0.0, 0.05, 60), np.zeros(60), np.linspace(0.0, 0.01, 60)]) if deskew \
         else None
@@ -306,3 +306,20 @@ def test_beam_skipping_uses_every_beam_when_the_cloud_explains_too_few(tmp_path,
     spread[:, 0] = np.linspace(1.0, 24.0, len(spread))  # along the whole corridor: no beam has a majority
     assert np.isfinite(sm.log_likelihood(spread, window, angles, range_max=8.0)).all()
     assert sm.last_beams_used == angles.size
+
+
+def test_beam_skipping_applies_only_to_a_cloud_of_one_hypothesis(tmp_path, monkeypatch):
+    """Two clusters 3 m apart (a global start narrowing down): the window's beams are minority beams for both, and
+    a beam only the right cluster explains would be too; nothing is skipped until the cloud is one."""
+    from localization.core.sensors import skips_beams
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    sm, particles, angles, _, window = _window_scene(do_beamskip=True)
+    plain, _, _, _, _ = _window_scene()
+    two = np.vstack([particles[:150], particles[150:] + [3.0, 0.0, 0.0]])
+    assert not skips_beams(two, True, 1.0) and skips_beams(particles, True, 1.0)
+    assert not skips_beams(particles, False, 1.0) and not skips_beams(np.full((3, 3), np.nan), True, 1.0)
+    np.testing.assert_array_equal(sm.log_likelihood(two, window, angles, range_max=8.0),
+                                  plain.log_likelihood(two, window, angles, range_max=8.0))
+    assert sm.last_beams_used == angles.size
+    sm.log_likelihood(particles, window, angles, range_max=8.0)
+    assert sm.last_beams_used <= angles.size - 8

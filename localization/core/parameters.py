@@ -312,6 +312,9 @@ PARAMETERS = [
           "agree on it", _fraction, "in [0, 1]"),
     Param("beam_skip_error_threshold", 0.9, "do_beamskip: when this fraction of the beams would be skipped the "
           "cloud is off: all beams are used", _fraction, "in [0, 1]"),
+    Param("beam_skip_max_spread", 1.0, "do_beamskip: beams are skipped only while the particles' position standard "
+          "deviation (the larger of x and y, m) is at most this: a spread cloud may hold several hypotheses, and "
+          "a beam only the right one explains would be skipped", _positive, "> 0"),
     Param("adaptive_particles", False, "KLD-adaptive particle count (Fox 2003, as nav2_amcl): every resampling draws "
           "as many particles as the cloud's spread over bins of kld_bin_xy x kld_bin_theta needs, in "
           "[min_particles, max_particles]; global localization and recovery start at max_particles. false: "

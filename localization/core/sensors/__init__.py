@@ -29,7 +29,11 @@ particles that can see (not off the map, not in a wall):
     used_b = v_b / V > beam_skip_threshold
     every beam is used when the skipped ones reach beam_skip_error_threshold of them (the cloud is off)
 
-The same beams are used for every particle (``beam_mask``), so skipping never favours one.
+The same beams are used for every particle (``beam_mask``), so skipping never favours one. It applies
+only while the cloud is one hypothesis (``skips_beams``: position standard deviation at most
+``beam_skip_max_spread``): in a cloud that holds several (global localization, a recovery's
+challengers) the beam that only the right one explains is a minority beam, and skipping it would
+remove the very evidence that decides between them.
 """
 from __future__ import annotations
 
@@ -63,6 +67,16 @@ class Preparation:
 
     slow: bool  # seconds of work (a range table to build): prepare off the caller's thread
     note: str  # one line for the log, e.g. "range table: loading it from the cache for the map ..."
+
+
+def skips_beams(particles: np.ndarray, do_beamskip: bool, max_spread: float) -> bool:
+    """Whether beam skipping applies to ``particles`` (N, 3): ``do_beamskip`` and the larger standard deviation
+    of their finite x and y at most ``max_spread`` (m)."""
+    if not do_beamskip:
+        return False
+    xy = np.asarray(particles, dtype=float)[:, :2]
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    return len(xy) > 0 and float(xy.std(axis=0).max()) <= max_spread
 
 
 def beam_mask(votes: np.ndarray, voters: int, threshold: float, error_threshold: float) -> np.ndarray:

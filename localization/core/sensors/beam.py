@@ -69,7 +69,7 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
 from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
 
 if HAVE_NUMBA:
     from numba import njit
@@ -105,6 +105,7 @@ class BeamModelParams:
     beam_skip_distance: float = default("beam_skip_distance", course=True)  # m: |s·z − o − d| that explains a beam
     beam_skip_threshold: float = default("beam_skip_threshold", course=True)  # share of particles
     beam_skip_error_threshold: float = default("beam_skip_error_threshold", course=True)  # share of beams
+    beam_skip_max_spread: float = default("beam_skip_max_spread", course=True)  # m: only a one-hypothesis cloud
 
     @classmethod
     def from_parameters(cls, params) -> "BeamModelParams":
@@ -387,10 +388,11 @@ class BeamModel(LaserMount):
             angles = angles + offsets[:, 2]
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
-        cols = np.empty((particles.shape[0] if p.do_beamskip else 0, angles.size), dtype=np.int32)
+        skip = skips_beams(particles, p.do_beamskip, p.beam_skip_max_spread)
+        cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
         _fused_kernel(particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
                       1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
-        if p.do_beamskip:
+        if skip:
             return self._skipped_sum(log_rows, self.measured_to_cells(observation, k), cols, np.isfinite(out))
         self.last_beams_used = angles.size
         return out
@@ -413,7 +415,7 @@ class BeamModel(LaserMount):
         z = self.measured_to_cells(observation, k)
         d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
         bad = self.map.is_occupied_or_outside(particles[:, :2])
-        if self.params.do_beamskip:
+        if skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread):
             return self._skipped_sum(self.log_table(k)[z], z, d, ~bad)
         log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
         log_w[bad] = -np.inf

@@ -64,7 +64,7 @@ import numpy as np
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast.kernels import HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range
+from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
 
 if HAVE_NUMBA:
     from numba import njit
@@ -87,6 +87,7 @@ class LikelihoodFieldParams:
     beam_skip_distance: float = default("beam_skip_distance")  # m
     beam_skip_threshold: float = default("beam_skip_threshold")
     beam_skip_error_threshold: float = default("beam_skip_error_threshold")
+    beam_skip_max_spread: float = default("beam_skip_max_spread")  # m
     squash_factor: float = default("squash_factor")
     num_beams_per_particle: int = default("num_beams_per_particle")
     scan_field_of_view: float = default("scan_field_of_view")  # rad
@@ -274,7 +275,7 @@ class LikelihoodFieldModel(LaserMount):
         args = (particles, float(off[0]), float(off[1]), float(off[2]), ox, oy, c, s, res, yaw, self.field,
                 log_table, local[:, 0].copy(), local[:, 1].copy())
         out = np.empty(n)
-        if not self.params.do_beamskip or local.shape[0] == 0:
+        if not skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread) or local.shape[0] == 0:
             _lf_kernel(*args, out)
             self.last_beams_used = local.shape[0]
         else:
@@ -316,7 +317,7 @@ class LikelihoodFieldModel(LaserMount):
         # the particle itself (not its laser) must be in a non-occupied cell of the map
         bad = self.map.is_occupied_or_outside(particles[:, :2])
         mask = np.ones(local.shape[0], dtype=bool)
-        if self.params.do_beamskip and local.shape[0]:
+        if skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread) and local.shape[0]:
             votes = (self.near_table[q] & ~bad[:, None]).sum(axis=0)
             mask = self._beam_mask(votes, int((~bad).sum()))
         out = self.log_table_for(z_max)[q[:, mask]].sum(axis=1) / self.params.squash_factor
