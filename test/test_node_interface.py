@@ -245,6 +245,18 @@ def test_diagnostics_show_the_range_scale_learnt_online(runner, drive):
     assert float(value.split()[0]) == round(r.node.localizer.range_scale, 4)
 
 
+def test_diagnostics_show_the_beams_the_last_update_used(runner, drive):
+    r = runner(do_beamskip=True, beam_skip_distance=0.15, beam_skip_threshold=0.3)
+    assert r.node.diagnostic_status().values["beams used"] == "no sensor update yet"
+    play_past_tf_timeout(r, drive)
+    assert h.wait_until(lambda: r.node.localizer.beams_used is not None, 5.0)
+    r.settle(0.5)  # every scan used: the last update's figure stays
+    value = r.node.diagnostic_status().values["beams used"]
+    used, offered = r.node.localizer.beams_used
+    assert value == f"{used} of {offered} (beam skipping)"
+    assert 0 < used <= offered == r.node.params.num_beams_per_particle
+
+
 def test_broken_tf_tree_is_a_diagnostics_warning(runner, drive):
     r = runner(tf_timeout=0.2)
     qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

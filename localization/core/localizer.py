@@ -131,6 +131,9 @@ class Localizer:
     laser_offset = property(lambda self: np.array(self._pf.sensor_model.laser_offset, dtype=float))
     waiting_scans = property(lambda self: len(self._queue), doc="scans waiting for odometry to reach them")
 
+    beams_used = property(lambda self: self._pf.beams_used,
+                          doc="(used, offered) beams of the last sensor update (beam skipping leaves some out); None")
+
     range_scale_online = property(lambda self: self._range_scale is not None,
                                   doc="the range scale is learnt while tracking (range_scale_estimation, beam model)")
 

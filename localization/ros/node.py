@@ -534,6 +534,10 @@ class LocalizationMixin:
         status.values["recoveries"] = str(loc.recoveries)
         status.values["range scale"] = f"{loc.range_scale:.4f} " + (
             "(learnt online)" if loc.range_scale_online else "(lidar_scale_to_map_scale)")
+        used = loc.beams_used
+        status.values["beams used"] = "no sensor update yet" if used is None else (
+            f"{'n/a' if used[0] is None else used[0]} of {used[1]}"
+            + (" (beam skipping)" if self.params.do_beamskip else ""))
         return status
 
     def _report_worker_drops(self) -> None:

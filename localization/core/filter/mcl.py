@@ -53,6 +53,7 @@ class MonteCarloLocalizer:
         self.initialized = False
         self.kld = kld  # a filter.kld.KLDSampler: each resampling picks the particle count (None: fixed)
         self.kld_hold = False  # True: keep the current count even with a KLD sampler (a global spread)
+        self.beams_used: tuple[int | None, int] | None = None  # the last sensor update's (used, offered) beams
 
     # ------------------------------------------------------------------ initialisation
     def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
@@ -113,6 +114,8 @@ class MonteCarloLocalizer:
         ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0."""
         log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
                                                    range_max=range_max)
+        # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
+        self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
         combined = self.log_weights + log_lik
         peak = combined.max()
         if not np.isfinite(peak):
