@@ -50,6 +50,21 @@ def kernels_for(params) -> list[tuple[str, str]]:
     return _MOTION
 
 
+def drop_if_older(dispatcher, *sources: str) -> bool:
+    """numba's cache checks only the kernel's own source file: a kernel that calls compiled helpers from
+    another module (inlined into its machine code) would load a stale compilation after only the helpers
+    changed. Drop the kernel's cache index when one of those ``sources`` (file paths) is newer than it, so
+    the next call compiles afresh. True when it dropped one; never raises."""
+    try:
+        index = dispatcher._cache._cache_file._index_path
+        if os.path.exists(index) and any(os.path.getmtime(src) > os.path.getmtime(index) for src in sources):
+            os.remove(index)
+            return True
+    except Exception:  # noqa: BLE001 - numba's internals changed, or the cache is not ours to touch
+        pass
+    return False
+
+
 def is_cached(module: str, name: str) -> bool | None:
     """Does numba's on-disk cache hold a current compilation of this kernel? None: cannot tell
     (numba missing, no ``cache=True``, or numba's internals changed)."""

@@ -178,16 +178,25 @@ if HAVE_NUMBA:
         """Exact finish: march each beam (from the sensor at padded grid (ox, oy), heading
         cos/sin c, s, moved by the beam's own offset (du, dv) in the sensor frame) from
         ``consts[C_REFINE]`` cells short of the nearest of its estimate and its two bins' ranges,
-        so a wall edge passing between the bins is resolved exactly."""
+        so a wall edge passing between the bins is resolved exactly. A start that lies in a wall
+        already (the estimate overshot), or a beam origin in a wall, marches the beam from its origin."""
         margin = consts[C_REFINE]
         inv_units = consts[C_INV_UNITS]
         max_cells = consts[C_MAX_CELLS]
         for b in range(cells.size):
             near = min(q0s[b], q1s[b]) * inv_units
             t0 = min(cells[b], near) - margin
-            cells[b] = march_from(blocking, ox + c * du[b] - s * dv[b], oy + s * du[b] + c * dv[b],
-                                  c * beam_c[b] - s * beam_s[b], s * beam_c[b] + c * beam_s[b],
-                                  t0 if t0 > 0.0 else 0.0, max_cells)
+            t0 = t0 if t0 > 0.0 else 0.0
+            bx, by = ox + c * du[b] - s * dv[b], oy + s * du[b] + c * dv[b]
+            dx, dy = c * beam_c[b] - s * beam_s[b], s * beam_c[b] + c * beam_s[b]
+            t = march_from(blocking, bx, by, dx, dy, t0, max_cells)
+            ix, iy = int(math.floor(bx)), int(math.floor(by))
+            if t0 > 0.0 and (t == t0 or not (0 <= ix < blocking.shape[1] and 0 <= iy < blocking.shape[0])
+                             or blocking[iy, ix]):
+                # the start lies in a wall already (the estimate overshot), or the beam's own origin does (a
+                # deskew offset into a wall: it sees 0, as from the sensor): march it from its origin
+                t = march_from(blocking, bx, by, dx, dy, 0.0, max_cells)
+            cells[b] = t
 
     @njit(cache=True, nogil=True, inline="always")
     def locate(x, y, th, map_ox, map_oy, map_c, map_s, resolution, map_yaw, index, n_bins):  # pragma: no cover

@@ -488,5 +488,9 @@ if HAVE_NUMBA:
                 if write:
                     cols_out[i, b] = col
             out[i] = total / squash_factor
+    # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
+    from localization.core.compile_cache import drop_if_older
+    from localization.core.raycast import kernels as _kernels
+    drop_if_older(_fused_kernel, _kernels.__file__)
 else:  # pragma: no cover
     _fused_kernel = None
