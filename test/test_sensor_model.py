@@ -311,13 +311,16 @@ def test_beam_skipping_uses_every_beam_when_the_cloud_explains_too_few(tmp_path,
 def test_beam_skipping_applies_only_to_a_cloud_of_one_hypothesis(tmp_path, monkeypatch):
     """Two clusters 3 m apart (a global start narrowing down): the window's beams are minority beams for both, and
     a beam only the right cluster explains would be too; nothing is skipped until the cloud is one."""
+    from dataclasses import replace
+
     from localization.core.sensors import skips_beams
     monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
     sm, particles, angles, _, window = _window_scene(do_beamskip=True)
     plain, _, _, _, _ = _window_scene()
     two = np.vstack([particles[:150], particles[150:] + [3.0, 0.0, 0.0]])
-    assert not skips_beams(two, True, 1.0) and skips_beams(particles, True, 1.0)
-    assert not skips_beams(particles, False, 1.0) and not skips_beams(np.full((3, 3), np.nan), True, 1.0)
+    on, off = sm.params, replace(sm.params, do_beamskip=False)  # beam_skip_max_spread 1 m
+    assert not skips_beams(two, on) and skips_beams(particles, on)
+    assert not skips_beams(particles, off) and not skips_beams(np.full((3, 3), np.nan), on)
     np.testing.assert_array_equal(sm.log_likelihood(two, window, angles, range_max=8.0),
                                   plain.log_likelihood(two, window, angles, range_max=8.0))
     assert sm.last_beams_used == angles.size

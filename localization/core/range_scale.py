@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.health import cloud_spread
+
 __all__ = ["GATE_FRACTION", "GATE_M", "MAX_SPREAD_M", "MIN_BEAMS", "MIN_BEAM_FRACTION", "RANGE_MARGIN_M",
            "RangeScaleEstimator", "estimate_scale"]
 
@@ -101,10 +103,8 @@ class RangeScaleEstimator:
         """One scan: measured ranges ``z`` (lidar metres, NaN/inf for no return) and ranges ``d`` ray cast
         at the estimate (map metres, the same beams), the scan's ``range_min``/``range_max``, the model's
         ``reach`` (map metres), the cloud's ``covariance`` (3, 3) (None: not checked). True when s moved."""
-        if covariance is not None:
-            xy = np.asarray(covariance, dtype=float)[:2, :2]
-            if not (np.all(np.isfinite(xy)) and np.linalg.eigvalsh(xy)[-1] <= MAX_SPREAD_M ** 2):
-                return False
+        if covariance is not None and not cloud_spread(covariance) <= MAX_SPREAD_M:
+            return False
         z = np.asarray(z, dtype=float).ravel()
         d = np.asarray(d, dtype=float).ravel()
         with np.errstate(invalid="ignore"):

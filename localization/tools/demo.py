@@ -4,8 +4,9 @@
    reference lab report (odometry noise 0, 0.3, 0.6; ``localization.datasets``), and with
    ``--loop`` the longer loop with biased odometry; each twice: scans drawn from the map itself and
    from the perturbed world ``STANDARD_PERTURBATION`` (6 boxes, 4 people, 5 % glass, scale 1.01;
-   ``localization.sim.perturb``), plus trial 2 at 2 m/s in that world at scale 1.01 and 1.02, each
-   also replayed with the filter learning the range scale online (``_online``: ``range_scale_estimation``)
+   ``localization.sim.perturb``), plus every report trial at 2 m/s in that world and trial 2 at 2 m/s at
+   scale 1.02 too, trial 2's 2 m/s drives also replayed with the filter learning the range scale online
+   (``_online``: ``range_scale_estimation``)
    (``--skip-perturbed``: the clean rows only). Errors are against the truth in the map frame
    (q = c + (p − c) / s, what a localizer in the map can report), the error against the car's pose in
    the world beside it; false recoveries: switches to a place > 1 m from the truth after the first second.

@@ -69,24 +69,25 @@ class Preparation:
     note: str  # one line for the log, e.g. "range table: loading it from the cache for the map ..."
 
 
-def skips_beams(particles: np.ndarray, do_beamskip: bool, max_spread: float) -> bool:
-    """Whether beam skipping applies to ``particles`` (N, 3): ``do_beamskip`` and the larger standard deviation
-    of their finite x and y at most ``max_spread`` (m)."""
-    if not do_beamskip:
+def skips_beams(particles: np.ndarray, params) -> bool:
+    """Whether beam skipping applies to ``particles`` (N, 3) under a model's ``params``: ``do_beamskip`` and the
+    larger standard deviation of their finite x and y at most ``beam_skip_max_spread`` (m)."""
+    if not params.do_beamskip:
         return False
     xy = np.asarray(particles, dtype=float)[:, :2]
     xy = xy[np.isfinite(xy).all(axis=1)]
-    return len(xy) > 0 and float(xy.std(axis=0).max()) <= max_spread
+    return len(xy) > 0 and float(xy.std(axis=0).max()) <= params.beam_skip_max_spread
 
 
-def beam_mask(votes: np.ndarray, voters: int, threshold: float, error_threshold: float) -> np.ndarray:
-    """(B,) the beams used by beam skipping (module docstring): ``votes`` (B,) particles agreeing on each
-    beam out of ``voters``; all beams when nobody votes or the skipped ones reach ``error_threshold``."""
+def beam_mask(params, votes: np.ndarray, voters: int) -> np.ndarray:
+    """(B,) the beams used by beam skipping (module docstring) under a model's ``params``: ``votes`` (B,)
+    particles agreeing on each beam out of ``voters``; all beams when nobody votes or the skipped ones reach
+    ``beam_skip_error_threshold``."""
     votes = np.asarray(votes)
     if voters == 0:
         return np.ones(votes.size, dtype=bool)
-    mask = votes / voters > threshold
-    if votes.size - mask.sum() >= votes.size * error_threshold:
+    mask = votes / voters > params.beam_skip_threshold
+    if votes.size - mask.sum() >= votes.size * params.beam_skip_error_threshold:
         return np.ones(votes.size, dtype=bool)
     return mask
 

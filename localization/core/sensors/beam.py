@@ -379,7 +379,8 @@ class BeamModel(LaserMount):
         p = self.params
         k = self.z_max_row(range_max)
         self.ray_caster.prepare(particles, self.laser_offset)  # a large map's table: build the tiles in use
-        log_rows = np.ascontiguousarray(self.log_table(k)[self.measured_to_cells(observation, k)])
+        z = self.measured_to_cells(observation, k)
+        log_rows = np.ascontiguousarray(self.log_table(k)[z])
         out = np.empty(particles.shape[0])
         ox, oy, oth = p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw
         if offsets is None:
@@ -388,12 +389,12 @@ class BeamModel(LaserMount):
             angles = angles + offsets[:, 2]
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
-        skip = skips_beams(particles, p.do_beamskip, p.beam_skip_max_spread)
+        skip = skips_beams(particles, p)
         cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
         _fused_kernel(particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
                       1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
         if skip:
-            return self._skipped_sum(log_rows, self.measured_to_cells(observation, k), cols, np.isfinite(out))
+            return self._skipped_sum(log_rows, z, cols, np.isfinite(out))
         self.last_beams_used = angles.size
         return out
 
@@ -401,11 +402,12 @@ class BeamModel(LaserMount):
         """Squashed log weights (N,) over the beams beam skipping uses (module docstring): ``log_rows`` (B, k + 1),
         ``z`` (B,) measured rows, ``cols`` (N, B) expected columns, ``valid`` (N,) particles that can see."""
         p = self.params
-        agree = np.abs(cols[valid] - z[None, :]) <= p.beam_skip_distance / p.table_resolution
-        used = beam_mask(agree.sum(axis=0), int(valid.sum()), p.beam_skip_threshold, p.beam_skip_error_threshold)
+        seeing = cols[valid]
+        agree = np.abs(seeing - z[None, :]) <= p.beam_skip_distance / p.table_resolution
+        used = beam_mask(p, agree.sum(axis=0), int(valid.sum()))
         self.last_beams_used = int(used.sum())
         out = np.full(cols.shape[0], -np.inf)
-        out[valid] = log_rows[np.flatnonzero(used)[None, :], cols[valid][:, used]].sum(axis=1) / p.squash_factor
+        out[valid] = log_rows[np.flatnonzero(used)[None, :], seeing[:, used]].sum(axis=1) / p.squash_factor
         return out
 
     def log_likelihood_numpy(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
@@ -415,7 +417,7 @@ class BeamModel(LaserMount):
         z = self.measured_to_cells(observation, k)
         d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
         bad = self.map.is_occupied_or_outside(particles[:, :2])
-        if skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread):
+        if skips_beams(particles, self.params):
             return self._skipped_sum(self.log_table(k)[z], z, d, ~bad)
         log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
         log_w[bad] = -np.inf

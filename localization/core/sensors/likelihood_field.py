@@ -275,22 +275,18 @@ class LikelihoodFieldModel(LaserMount):
         args = (particles, float(off[0]), float(off[1]), float(off[2]), ox, oy, c, s, res, yaw, self.field,
                 log_table, local[:, 0].copy(), local[:, 1].copy())
         out = np.empty(n)
-        if not skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread) or local.shape[0] == 0:
+        if not skips_beams(particles, self.params) or local.shape[0] == 0:
             _lf_kernel(*args, out)
             self.last_beams_used = local.shape[0]
         else:
             per_beam = np.empty((n, local.shape[0]), dtype=np.uint8)
             votes = np.zeros(local.shape[0], dtype=np.int64)
             _lf_beamskip_kernel(*args, self.near_table, per_beam, votes, out)
-            mask = self._beam_mask(votes, int(np.isfinite(out).sum()))
+            mask = beam_mask(self.params, votes, int(np.isfinite(out).sum()))
             self.last_beams_used = int(mask.sum())
             _masked_sum(per_beam, log_table, mask, out)
         out[np.isfinite(out)] /= self.params.squash_factor
         return out
-
-    def _beam_mask(self, votes: np.ndarray, voters: int) -> np.ndarray:
-        """nav2's beam skipping (``sensors.beam_mask``)."""
-        return beam_mask(votes, voters, self.params.beam_skip_threshold, self.params.beam_skip_error_threshold)
 
     def log_likelihood_numpy(self, particles, ranges, angles=None, offsets=None, range_max=None) -> np.ndarray:
         """``log_likelihood`` in numpy, (N, B) temporaries: the reference of the compiled kernels."""
@@ -317,9 +313,9 @@ class LikelihoodFieldModel(LaserMount):
         # the particle itself (not its laser) must be in a non-occupied cell of the map
         bad = self.map.is_occupied_or_outside(particles[:, :2])
         mask = np.ones(local.shape[0], dtype=bool)
-        if skips_beams(particles, self.params.do_beamskip, self.params.beam_skip_max_spread) and local.shape[0]:
+        if skips_beams(particles, self.params) and local.shape[0]:
             votes = (self.near_table[q] & ~bad[:, None]).sum(axis=0)
-            mask = self._beam_mask(votes, int((~bad).sum()))
+            mask = beam_mask(self.params, votes, int((~bad).sum()))
         out = self.log_table_for(z_max)[q[:, mask]].sum(axis=1) / self.params.squash_factor
         out[bad] = -np.inf
         return out
