@@ -26,9 +26,9 @@ def test_perturbed_runs_are_the_standard_world_and_2mps_drives():
     for scale in (1.01, 1.02):
         drive = {"speed": 2.0, "world": replace(STANDARD_PERTURBATION, scale=scale)}
         assert runs[f"trial2_2mps_scale{scale:g}"] == ("trial2_noise0.3", drive, {})
-        # the same recording, the filter learning the range scale online
-        online = {"range_scale_estimation": True}
-        assert runs[f"trial2_2mps_scale{scale:g}_online"] == ("trial2_noise0.3", drive, online)
+        # the same recording with the range scale fixed as configured (not learnt online)
+        fixed = {"range_scale_estimation": False}
+        assert runs[f"trial2_2mps_scale{scale:g}_fixed"] == ("trial2_noise0.3", drive, fixed)
     # every trial at 2 m/s in the standard world
     assert runs["trial1_2mps_scale1.01"] == ("trial1_noise0", {"speed": 2.0, "world": STANDARD_PERTURBATION}, {})
     assert len(runs) == 7
@@ -72,12 +72,12 @@ def test_demo_prints_both_row_sets(tmp_path, capsys, monkeypatch):
     text = capsys.readouterr().out
     rows = {ln.split()[0]: ln for ln in text.splitlines() if ln.startswith("trial2_")}
     assert list(rows) == ["trial2_noise0.3", "trial2_noise0.3_perturbed", "trial2_2mps_scale1.01",
-                          "trial2_2mps_scale1.01_online", "trial2_2mps_scale1.02", "trial2_2mps_scale1.02_online"]
-    assert " map " in rows["trial2_noise0.3"] and "perturbed s1.02" in rows["trial2_2mps_scale1.02_online"]
+                          "trial2_2mps_scale1.01_fixed", "trial2_2mps_scale1.02", "trial2_2mps_scale1.02_fixed"]
+    assert " map " in rows["trial2_noise0.3"] and "perturbed s1.02" in rows["trial2_2mps_scale1.02_fixed"]
     summary = json.loads((out / "summary.json").read_text())
     assert "world_ct_error_m" not in summary["trial2_noise0.3"]  # the clean world: one truth
     for label in ("trial2_noise0.3_perturbed", "trial2_2mps_scale1.01", "trial2_2mps_scale1.02",
-                  "trial2_2mps_scale1.02_online"):
+                  "trial2_2mps_scale1.02_fixed"):
         m = summary[label]
         assert m["false_recoveries"] == 0 and m["recoveries"] == 0
         # scored against both truths (which differ by (1 − 1/s)·|p − c|; the errors of a 2-s drive are mostly

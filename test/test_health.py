@@ -270,3 +270,47 @@ def test_a_near_switch_is_published_without_a_jump(stata):
     assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and steps.max() > 0.2  # in steps ...
     assert np.allclose(poses[-1], near)  # ... to the place the challenger won
     assert loc.recoveries == 1
+
+
+def _tracking_jump(stata, start_cov, jump_glide=None):
+    """A tracking Localizer whose cloud moves 0.6 m on its second scan without a switch (a cloud of two
+    places whose weight moved): the published estimates of 8 scans and the cloud's place."""
+    overrides = {} if jump_glide is None else {"recovery_jump_glide": jump_glide}
+    loc = Localizer(params(num_particles=300, **overrides), logging.getLogger("test.jump"))
+    loc.set_map(stata)
+    start = np.array([-2.0, 0.0, 0.0])
+    loc.set_initial_pose(start, start_cov)
+    there = start + [0.5, 0.35, 0.05]
+    real_run, runs = loc._step.run, []
+
+    def run(scan, t_s, occupancy_map, global_mode):  # the scan step; on its second scan the cloud is elsewhere
+        out = real_run(scan, t_s, occupancy_map, global_mode)
+        runs.append(t_s)
+        if len(runs) == 2:
+            loc._pf.set_particles(np.tile(there, (300, 1)))
+        if len(runs) >= 2:
+            return StepOutcome(estimate=Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5])))
+        return out
+
+    loc._step.run = run
+    poses = []
+    for k in range(8):
+        loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
+        poses.append(loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0)).pose)
+    return np.array(poses), there, loc
+
+
+def test_a_tracking_cloud_that_moves_to_another_place_is_published_without_a_jump(stata):
+    poses, there, loc = _tracking_jump(stata, np.diag([1e-4, 1e-4, 1e-5]))
+    steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert steps.max() <= loc.params.recovery_jump_glide + 1e-9 and steps.max() > 0.2  # in steps ...
+    assert np.allclose(poses[-1], there)  # ... to where the cloud is
+    assert loc.recoveries == 0  # not a switch
+    off, _, _ = _tracking_jump(stata, np.diag([1e-4, 1e-4, 1e-5]), jump_glide=0.0)
+    assert np.hypot(*np.diff(off[:, :2], axis=0).T).max() > 0.6  # recovery_jump_glide 0: at once
+
+
+def test_a_cloud_converging_from_a_wide_initial_pose_is_published_at_once(stata):
+    # 0.6 m lies within three standard deviations of a 0.5 m initial pose: convergence, not a jump
+    poses, there, _ = _tracking_jump(stata, np.diag([0.25, 0.25, 0.05]))
+    assert np.allclose(poses[1], there)

@@ -130,38 +130,44 @@ def test_the_filter_tracks_a_2mps_drive_in_the_standard_perturbed_world():
     assert r["world"] > r["map"] + 0.02  # the world-frame figure adds (1 − 1/s)·|p − c|
 
 
-def test_no_false_recovery_at_scale_1_02():
-    r = localize(drive(replace(WORLD, scale=1.02)))
-    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
-    assert r["map"] <= 0.05  # tracks, but not within 0.03 without the range scale (docs/performance.md)
+def test_with_the_range_scale_fixed_a_2_percent_scale_error_costs_accuracy_but_no_false_recovery():
+    fixed = localize(drive(replace(WORLD, scale=1.02)), range_scale_estimation=False)
+    assert fixed["recoveries"] == 0 and fixed["false_recoveries"] == 0
+    assert 0.03 < fixed["map"] <= 0.05  # the beam model's best fit lies behind the car (docs/performance.md)
 
 
 def test_a_calibrated_range_scale_removes_the_conflict_at_scale_1_02():
     # lidar_scale_to_map_scale = 1/s: the correction localization-calibrate estimates on a real car
-    r = localize(drive(replace(WORLD, scale=1.02)), lidar_scale_to_map_scale=1 / 1.02)
+    r = localize(drive(replace(WORLD, scale=1.02)), lidar_scale_to_map_scale=1 / 1.02, range_scale_estimation=False)
     assert r["recoveries"] == 0 and r["false_recoveries"] == 0
     assert r["map"] <= 0.03
 
 
-def test_the_online_range_scale_follows_a_building_2_percent_larger_than_its_map():
-    # range_scale_estimation: no calibration, the scale is learnt while the filter tracks
-    r = localize(drive(replace(WORLD, scale=1.02)), range_scale_estimation=True)
+def test_the_range_scale_learnt_online_follows_a_building_2_percent_larger_than_its_map():
+    # config/params.yaml learns the scale while the filter tracks: no calibration
+    r = localize(drive(replace(WORLD, scale=1.02)))
     assert r["recoveries"] == 0 and r["false_recoveries"] == 0
     assert r["map"] <= 0.03
-    assert r["range_scale"] == pytest.approx(1 / 1.02, abs=0.005)  # started at 1.0
+    assert r["range_scale"] == pytest.approx(1 / 1.02, abs=0.004)  # started at 1.0
 
 
-def test_the_online_range_scale_stays_at_one_where_the_world_matches_the_map_scale():
-    r = localize(drive(replace(WORLD, scale=1.0)), range_scale_estimation=True)
+def test_the_range_scale_learnt_online_stays_at_one_where_the_world_matches_the_map_scale():
+    r = localize(drive(replace(WORLD, scale=1.0)))
     assert r["recoveries"] == 0 and r["false_recoveries"] == 0 and r["map"] <= 0.03
     assert r["range_scale"] == pytest.approx(1.0, abs=0.003)
+
+
+def test_the_whole_route_at_2mps_in_a_building_2_percent_larger_than_its_map():
+    r = localize(replace(trial_config("trial2_noise0.3", speed=2.0), world=replace(WORLD, scale=1.02)))
+    assert r["recoveries"] == 0 and r["false_recoveries"] == 0
+    assert r["map"] <= 0.03
 
 
 def test_beam_skipping_keeps_the_whole_route_within_3_cm_in_a_perturbed_world_it_was_not_chosen_on():
     # do_beamskip (config/params.yaml) was chosen on the perturbation of seed 1; seed 2 puts the glass, boxes and
     # people elsewhere. Without it the readings through glass pull the estimate along the corridor.
     cfg = replace(trial_config("trial2_noise0.3", speed=2.0), world=replace(WORLD, seed=2))
-    skipping, plain = localize(cfg), localize(cfg, do_beamskip=False)
+    skipping, plain = (localize(cfg, range_scale_estimation=False, do_beamskip=v) for v in (True, False))
     for r in (skipping, plain):
         assert r["recoveries"] == 0 and r["false_recoveries"] == 0
     assert skipping["map"] <= 0.03 < plain["map"]
@@ -176,13 +182,13 @@ if __name__ == "__main__":  # the figures: errors without and with the perturbat
     for world in (None, *(replace(WORLD, scale=s) for s in (1.0, 1.01, 1.02))):
         print(world, localize(run(world)))
         if world is not None:
-            print("  range_scale_estimation", localize(run(world), range_scale_estimation=True))
+            print("  range scale fixed", localize(run(world), range_scale_estimation=False))
     for seed in (1, 2, 3):
         world = replace(WORLD, seed=seed)
-        print(f"perturbation seed {seed}: beam skipping", localize(run(world)), "without",
-              localize(run(world), do_beamskip=False))
+        print(f"perturbation seed {seed}:", localize(run(world)), "scale fixed: beam skipping",
+              localize(run(world), range_scale_estimation=False), "without",
+              localize(run(world), range_scale_estimation=False, do_beamskip=False))
     for s in (1.01, 1.02):
         print(f"scale {s}, lidar_scale_to_map_scale 1/{s}",
-              localize(run(replace(WORLD, scale=s)), lidar_scale_to_map_scale=1 / s))
-    print("scale 1.01 without glass, range_scale_estimation",
-          localize(run(replace(WORLD, scale=1.01, glass_fraction=0.0)), range_scale_estimation=True))
+              localize(run(replace(WORLD, scale=s)), lidar_scale_to_map_scale=1 / s, range_scale_estimation=False))
+    print("scale 1.01 without glass", localize(run(replace(WORLD, scale=1.01, glass_fraction=0.0))))

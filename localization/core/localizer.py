@@ -35,6 +35,7 @@ import logging
 import math
 import threading
 from collections import deque
+from functools import partial
 
 import numpy as np
 
@@ -110,13 +111,15 @@ class Localizer:
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
         self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
-        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
+        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max,
+                                  p.recovery_jump_glide)
         self._range_scale = None  # RangeScaleEstimator (range_scale_estimation with the beam model)
         if p.range_scale_estimation:
             if isinstance(self._pf.sensor_model, BeamModel):
                 self._range_scale = RangeScaleEstimator.from_parameters(p)
             else:
-                self.log.warning("range_scale_estimation needs the beam sensor model: ignored")
+                self.log.info("range_scale_estimation: the likelihood field does not learn the range scale "
+                              "(lidar_scale_to_map_scale as configured)")
         self.recoveries = 0
         # why the last on_scan could not use its scan: "map pending" (no map yet, the sensor model is
         # preparing one), "not ready" (no map, or no initial pose), None (taken, or refused for its content)
@@ -326,16 +329,21 @@ class Localizer:
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
-        if (self._range_scale is not None and out.estimate is not None and out.switched is None and not out.respread
-                and not self.global_mode and not self._recovery.holding):
+        if (self._range_scale is not None and out.estimate is not None and out.beams is not None
+                and out.switched is None and not out.respread and not self.global_mode and not self._recovery.holding):
             self._update_range_scale(out)
-        published = None  # the last published pose carried to this scan, while a switch needs it
-        if out.switched is not None or self._glide.active:
+        tracking = (out.estimate is not None and out.switched is None and not out.respread and not self.global_mode
+                    and self._glide.jump > 0.0)  # a tracking update: is it a jump?
+        published = carried = None  # the last published pose carried to this scan, while a glide needs it
+        if out.switched is not None or self._glide.active or tracking:
             carried = self._timeline.pose_at(t_s)
             published = None if carried is None else carried.pose
         if out.switched is not None:
             self.recoveries += 1
             self._glide.start(published, out.switched.pose)
+        elif tracking and not self._glide.active and carried is not None \
+                and self._glide.is_jump(published, carried.covariance, out.estimate.pose):
+            self._glide.start(published, out.estimate.pose)
         if out.estimate is not None:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
             pose, cov = self._glide.apply(published, est.pose, est.covariance)
@@ -348,7 +356,7 @@ class Localizer:
         deskewed them) against the ranges ray cast at its estimate (``core.range_scale``)."""
         model, (rmin, rmax), beams = self._pf.sensor_model, out.range_limits, out.beams
         offsets = sweep_offsets(out.offsets, beams.ranges.size)  # as the sensor update casts them
-        d = model.expected_ranges(out.estimate.pose[None, :], beams.angles, offsets)[0]
-        if self._range_scale.update(beams.ranges, d, rmin, model.max_range_for(rmax), model.table_range,
-                                    out.estimate.covariance, model.params.map_wall_depth):
+        cast = partial(model.expected_ranges, angles=beams.angles, offsets=offsets)  # poses (k, 3) -> (k, B)
+        if self._range_scale.update(beams.ranges, cast, out.estimate.pose, rmin, model.max_range_for(rmax),
+                                    model.table_range, out.estimate.covariance, model.params.map_wall_depth):
             model.set_range_scale(self._range_scale.scale)

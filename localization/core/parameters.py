@@ -135,6 +135,10 @@ PARAMETERS = [
           ">= 0"),
     Param("recovery_switch_glide_max", 2.0, "a switch to a place farther than this (m) from the published pose (the "
           "robot was carried elsewhere) is published at once", _non_negative, ">= 0"),
+    Param("recovery_jump_glide", 0.25, "while tracking, a sensor update that moves the estimate farther than this (m) "
+          "from the published pose carried by odometry, and outside three standard deviations of that pose's "
+          "covariance (a cloud that changed its mind between two places, not one converging), is published as a "
+          "glide, as after a switch (0: at once)", _non_negative, ">= 0"),
     Param("recovery_challenger_timeout", 8.0, "a challenger that has not won within this long (s, scan clock) is "
           "dropped", _positive, "> 0"),
     Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "
@@ -197,12 +201,13 @@ PARAMETERS = [
           "s·z − map_wall_depth (s: lidar_scale_to_map_scale) against the ray cast to the edge; localization-calibrate "
           "estimates it (\"wall surface ... behind the free-space edge\")",
           lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
-    Param("range_scale_estimation", False, "beam model: estimate the lidar-to-map range scale online while the filter "
-          "tracks (core/range_scale.py): after each sensor update of a converged cloud, the least-squares ratio of "
-          "the ranges ray cast at the estimate to the measured ones, over the beams within a few centimetres of the "
-          "map, low-pass filtered (range_scale_alpha), kept within range_scale_bound of lidar_scale_to_map_scale "
-          "(its start value), replaces lidar_scale_to_map_scale. For a building a little larger or smaller than "
-          "its map; false: lidar_scale_to_map_scale as configured. The likelihood field ignores it",
+    Param("range_scale_estimation", True, "beam model: learn the lidar-to-map range scale while the filter tracks "
+          "(core/range_scale.py): after each sensor update of a converged cloud, the scale is fitted jointly with a "
+          "small correction of the estimate over the beams within a few centimetres of the map, low-pass filtered "
+          "(range_scale_alpha), kept within range_scale_bound of lidar_scale_to_map_scale (its start value), and "
+          "replaces lidar_scale_to_map_scale. For a building a little larger or smaller than its map, or a lidar "
+          "whose ranges read long or short; false: lidar_scale_to_map_scale as configured. The likelihood field "
+          "does not use it",
           lambda v: isinstance(v, bool), "true or false"),
     Param("range_scale_alpha", 0.02, "range_scale_estimation: weight of each scan's ratio in the estimate (a time "
           "constant of 1 / range_scale_alpha sensor updates)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),

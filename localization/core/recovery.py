@@ -32,6 +32,9 @@ the fast average stays low for ``health_lost_updates`` updates. Then, with ``rec
                diagonal, until f = 1: a confirmed correction is never one jump of the published pose.
                A switch farther than ``recovery_switch_glide_max`` (the robot was carried elsewhere) is
                published at once: gliding would draw a path through walls
+    jump       a tracking update (no switch) whose estimate lies more than ``recovery_jump_glide`` m from
+               x̄ and more than JUMP_SIGMAS standard deviations of x̄'s covariance (a cloud whose weight
+               moved from one place to another after the map disagreed for a while) glides the same way
 
 A global spread (start, service) is judged only once converged (cloud std < global_converged_std):
 before that, its mean says nothing about any of its hypotheses. ``status`` is what the node reports.
@@ -46,6 +49,8 @@ import numpy as np
 from localization.core.geometry import wrap_angle
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
+
+JUMP_SIGMAS = 3.0  # a tracking update's move beyond this many standard deviations of the published pose can jump
 
 TRACKING, HOLDING = "tracking", "scans disagree with the map"
 
@@ -149,10 +154,22 @@ class RecoveryPolicy:
 class SwitchGlide:
     """The published estimate's way to a place a challenger won (module doc, "glide")."""
 
-    def __init__(self, step: float, turn: float, farthest: float):
+    def __init__(self, step: float, turn: float, farthest: float, jump: float = 0.0):
         self.step, self.turn = float(step), float(turn)  # m, rad per sensor update (0: at once)
         self.farthest = float(farthest)  # m: a switch farther than this is published at once
+        self.jump = float(jump)  # m: a tracking update that moves the estimate farther glides too (0: never)
         self.active = False
+
+    def is_jump(self, published, published_covariance, pose) -> bool:
+        """Does a tracking update that moves the estimate from the ``published`` pose (carried to the
+        update's time, with its ``published_covariance``) to ``pose`` jump? Farther than ``jump`` and
+        outside ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a
+        wide initial pose moves within its own spread and does not glide)."""
+        if self.jump <= 0.0 or published is None:
+            return False
+        dist = math.hypot(pose[0] - published[0], pose[1] - published[1])
+        spread = cloud_spread(published_covariance)
+        return dist > self.jump and dist > JUMP_SIGMAS * spread
 
     def start(self, published, pose) -> None:
         """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
