@@ -230,7 +230,7 @@ def play_past_tf_timeout(r, drive):
 
 
 def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
-    r = runner(tf_timeout=0.2, laser_offset_x=0.2)
+    r = runner(tf_timeout=0.2, laser_offset_x=0.2, range_scale_estimation=False)  # the scale as configured
     play_past_tf_timeout(r, drive)
     assert np.allclose(r.node.localizer.laser_offset, [0.2, 0.0, 0.0])
     assert r.node.diagnostic_status().values["laser pose"] == "laser_offset_* parameters"
