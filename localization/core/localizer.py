@@ -329,20 +329,18 @@ class Localizer:
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
-        if (self._range_scale is not None and out.estimate is not None and out.beams is not None
-                and out.switched is None and not out.respread and not self.global_mode and not self._recovery.holding):
+        tracking = out.estimate is not None and out.switched is None and not out.respread and not self.global_mode
+        if self._range_scale is not None and tracking and not self._recovery.holding:
             self._update_range_scale(out)
-        tracking = (out.estimate is not None and out.switched is None and not out.respread and not self.global_mode
-                    and self._glide.jump > 0.0)  # a tracking update: is it a jump?
+        watch = tracking and self._glide.jump > 0.0 and not self._glide.active  # might this update jump?
         published = carried = None  # the last published pose carried to this scan, while a glide needs it
-        if out.switched is not None or self._glide.active or tracking:
+        if out.switched is not None or self._glide.active or watch:
             carried = self._timeline.pose_at(t_s)
             published = None if carried is None else carried.pose
         if out.switched is not None:
             self.recoveries += 1
             self._glide.start(published, out.switched.pose)
-        elif tracking and not self._glide.active and carried is not None \
-                and self._glide.is_jump(published, carried.covariance, out.estimate.pose):
+        elif watch and self._glide.is_jump(carried, out.estimate.pose):
             self._glide.start(published, out.estimate.pose)
         if out.estimate is not None:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())

@@ -80,9 +80,11 @@ def estimate_scale(z, d, scale: float, wall_depth: float = 0.0, jacobian=None) -
     z = np.asarray(z, dtype=float).ravel()
     d = np.asarray(d, dtype=float).ravel() + wall_depth  # the model's o moved to the map side: d + o = s·z
     tolerance = GATE_M + GATE_FRACTION * d
-    a = z[:, None] if jacobian is None else np.column_stack([z, -np.asarray(jacobian, dtype=float)])
-    prior = np.zeros(a.shape[1])  # information of the prior on (s, Δx, Δy, Δθ): none on s
-    prior[1:] = (BEAM_STD_M / np.array([PRIOR_STD_M, PRIOR_STD_M, PRIOR_STD_RAD])[:a.shape[1] - 1]) ** 2
+    if jacobian is None:  # the estimate taken as the true pose: ŝ alone
+        a, prior = z[:, None], np.zeros(1)
+    else:  # (ŝ, Δ); the prior's information on Δ, none on ŝ
+        a = np.column_stack([z, -np.asarray(jacobian, dtype=float)])
+        prior = np.concatenate([[0.0], (BEAM_STD_M / np.array([PRIOR_STD_M, PRIOR_STD_M, PRIOR_STD_RAD])) ** 2])
     fit = np.zeros(a.shape[1])
     fit[0] = float(scale)
     s, used = math.nan, 0
@@ -120,16 +122,17 @@ def range_jacobian(ranges) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_scale(z, cast, pose, valid, scale: float, wall_depth: float = 0.0,
-              steps: int = GAUSS_NEWTON_STEPS) -> tuple[float, int]:
+              steps: int = GAUSS_NEWTON_STEPS, ranges=None) -> tuple[float, int]:
     """(ŝ, beams used) of one scan fitted jointly with a pose correction (module docstring): measured
     ranges ``z`` (lidar metres), ``cast(poses (k, 3)) -> (k, B)`` ray casts the scan's beams (map
     metres), ``pose`` the filter's estimate, ``valid`` (B,) the beams worth fitting, ``steps`` the
-    Gauss-Newton steps. (NaN, 0) when no beam passes."""
+    Gauss-Newton steps, ``ranges`` the (7, B) casts from ``jacobian_poses(pose)`` when already cast.
+    (NaN, 0) when no beam passes."""
     z = np.asarray(z, dtype=float).ravel()
     pose = np.asarray(pose, dtype=float).reshape(3)
     s, used = math.nan, 0
     for _ in range(steps):
-        ranges = np.asarray(cast(jacobian_poses(pose)), dtype=float)
+        ranges = np.asarray(cast(jacobian_poses(pose)) if ranges is None else ranges, dtype=float)
         jacobian, smooth = range_jacobian(ranges)
         ok = valid & smooth & np.isfinite(ranges[0])
         if not ok.any():
@@ -137,7 +140,7 @@ def fit_scale(z, cast, pose, valid, scale: float, wall_depth: float = 0.0,
         s, used, correction = estimate_scale(z[ok], ranges[0][ok], scale, wall_depth, jacobian[ok])
         if not math.isfinite(s):
             return math.nan, 0
-        pose = pose + correction
+        pose, ranges = pose + correction, None
     return s, used
 
 
@@ -174,13 +177,14 @@ class RangeScaleEstimator:
         if covariance is not None and not cloud_spread(covariance) <= MAX_SPREAD_M:
             return False
         z = np.asarray(z, dtype=float).ravel()
-        d = np.asarray(cast(np.asarray(pose, dtype=float).reshape(1, 3)), dtype=float).ravel()
+        ranges = np.asarray(cast(jacobian_poses(pose)), dtype=float)  # the first fit's casts; d: from the estimate
+        d = ranges[0]
         with np.errstate(invalid="ignore"):
             valid = (np.isfinite(z) & np.isfinite(d) & (z > range_min) & (z < range_max - RANGE_MARGIN_M)
                      & (d > 0.0) & (d < reach - RANGE_MARGIN_M))
         if np.count_nonzero(valid) < MIN_BEAMS:
             return False
-        s, used = fit_scale(z, cast, pose, valid, self.scale, wall_depth)
+        s, used = fit_scale(z, cast, pose, valid, self.scale, wall_depth, ranges=ranges)
         if used < max(MIN_BEAMS, MIN_BEAM_FRACTION * z.size) or not math.isfinite(s):
             return False
         lo, hi = self.limits

@@ -160,16 +160,15 @@ class SwitchGlide:
         self.jump = float(jump)  # m: a tracking update that moves the estimate farther glides too (0: never)
         self.active = False
 
-    def is_jump(self, published, published_covariance, pose) -> bool:
-        """Does a tracking update that moves the estimate from the ``published`` pose (carried to the
-        update's time, with its ``published_covariance``) to ``pose`` jump? Farther than ``jump`` and
-        outside ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a
-        wide initial pose moves within its own spread and does not glide)."""
+    def is_jump(self, published, pose) -> bool:
+        """Does a tracking update that moves the estimate from the ``published`` estimate (a PoseEstimate
+        carried to the update's time; None: none) to ``pose`` jump? Farther than ``jump`` and outside
+        ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a wide
+        initial pose moves within its own spread and does not glide)."""
         if self.jump <= 0.0 or published is None:
             return False
-        dist = math.hypot(pose[0] - published[0], pose[1] - published[1])
-        spread = cloud_spread(published_covariance)
-        return dist > self.jump and dist > JUMP_SIGMAS * spread
+        dist = math.hypot(pose[0] - published.pose[0], pose[1] - published.pose[1])
+        return dist > self.jump and dist > JUMP_SIGMAS * cloud_spread(published.covariance)
 
     def start(self, published, pose) -> None:
         """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
