@@ -252,7 +252,7 @@ def test_a_near_switch_is_published_without_a_jump(stata):
 
     real_run, runs = loc._step.run, []
 
-    def run(scan, t_s, occupancy_map, global_mode):  # the scan step, with a switch on its second scan
+    def run(scan, t_s, occupancy_map, global_mode, published=None):  # the scan step, a switch on its second scan
         real_run(scan, t_s, occupancy_map, global_mode)  # (the particles moved to the scan's time)
         runs.append(t_s)
         if len(runs) == 2:
@@ -286,7 +286,7 @@ def _tracking_jump(stata, start_cov, jump_glide=None):
     there = start + [0.5, 0.35, 0.05]
     real_run, runs = loc._step.run, []
 
-    def run(scan, t_s, occupancy_map, global_mode):  # the scan step; on its second scan the cloud is elsewhere
+    def run(scan, t_s, occupancy_map, global_mode, published=None):  # on its second scan the cloud is elsewhere
         out = real_run(scan, t_s, occupancy_map, global_mode)
         runs.append(t_s)
         if len(runs) == 2:
@@ -311,6 +311,64 @@ def test_a_tracking_cloud_that_moves_to_another_place_is_published_without_a_jum
     assert loc.recoveries == 0  # not a switch
     off, _, _ = _tracking_jump(stata, np.diag([1e-4, 1e-4, 1e-5]), jump_glide=0.0)
     assert np.hypot(*np.diff(off[:, :2], axis=0).T).max() > 0.6  # recovery_jump_glide 0: at once
+
+
+def _update_moves_the_cloud(stata, truth, believed, moved, caplog):
+    """A Localizer told it is at ``believed`` (tight) while the robot drives from ``truth`` at 0.5 m/s, its
+    scans cast there; the second sensor update puts the whole cloud at ``moved`` (driven as far: a cloud
+    whose weight moved there). The published estimates, and the Localizer."""
+    loc = Localizer(params(num_particles=300, range_scale_estimation=False), logging.getLogger("test.refuse"))
+    loc.set_map(stata)
+    loc.set_initial_pose(believed, np.diag([1e-4, 1e-4, 1e-5]))
+    caster, mount = ExactRayCaster(stata, 10.0), np.array([0.275, 0.0, 0.0])
+    real_update, updates = loc._pf.sensor_update, []
+
+    def update(*args, **kwargs):
+        out = real_update(*args, **kwargs)
+        updates.append(1)
+        if len(updates) == 2:
+            loc._pf.set_particles(np.tile(moved + [0.05 * len(poses) * math.cos(moved[2]),
+                                                   0.05 * len(poses) * math.sin(moved[2]), 0.0], (300, 1)))
+        return out
+
+    loc._pf.sensor_update = update
+    poses = []
+    with caplog.at_level(logging.WARNING, logger="test.refuse"):
+        for k in range(10):
+            t = 0.1 * k
+            robot = truth + [0.05 * k * math.cos(truth[2]), 0.05 * k * math.sin(truth[2]), 0.0]
+            laser = robot + [mount[0] * math.cos(robot[2]), mount[0] * math.sin(robot[2]), 0.0]
+            loc.on_odometry(TwistData(t, 0.5, 0.0, 0.0))
+            est = loc.on_scan(ScanData(t, caster.cast(laser[None], ANGLES)[0], ANGLES[0], ANGLES[-1], INC, 0.02, 10.0))
+            poses.append(est.pose if est is not None else poses[-1])
+    return np.array(poses), loc
+
+
+def test_an_update_that_jumps_to_a_place_the_scan_fits_worse_is_undone(stata, caplog):
+    """The cloud's weight moves 0.6 m away, to a place the scan fits worse than the published pose: the
+    update is undone (one log line), the pose goes on from where it was, without a jump."""
+    truth = np.array([-6.6, 20.5, -2.24])
+    wrong = truth + [0.6 * math.sin(truth[2]), -0.6 * math.cos(truth[2]), 0.0]  # 0.6 m to the side
+    poses, loc = _update_moves_the_cloud(stata, truth, truth, wrong, caplog)
+    assert loc._step.refused_jumps == 1 and "fits worse" in caplog.text
+    steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert steps.max() < 0.1  # 0.05 m per scan driven: no jump
+    end = truth[:2] + 0.45 * np.array([math.cos(truth[2]), math.sin(truth[2])])
+    assert np.hypot(*(poses[-1, :2] - end)) < 0.05  # still on the true track
+    assert loc.recoveries == 0 and loc.status == "tracking"
+
+
+def test_an_update_that_jumps_to_a_place_the_scan_fits_clearly_better_is_taken(stata, caplog):
+    """The same move of the cloud, but the robot is there (its initial pose was 0.6 m off): the update is
+    kept and the published estimate glides to it."""
+    truth = np.array([-6.6, 20.5, -2.24])
+    wrong = truth + [0.6 * math.sin(truth[2]), -0.6 * math.cos(truth[2]), 0.0]
+    poses, loc = _update_moves_the_cloud(stata, truth, wrong, truth, caplog)
+    assert loc._step.refused_jumps == 0 and "fits worse" not in caplog.text
+    steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    assert 0.2 < steps.max() <= loc.params.recovery_jump_glide + 0.05 + 1e-9  # glided (plus 0.05 m driven)
+    end = truth[:2] + 0.45 * np.array([math.cos(truth[2]), math.sin(truth[2])])
+    assert np.hypot(*(poses[-1, :2] - end)) < 0.05  # on the true track
 
 
 def test_a_cloud_converging_from_a_wide_initial_pose_is_published_at_once(stata):

@@ -137,6 +137,9 @@ class Localizer:
     beams_used = property(lambda self: self._pf.beams_used,
                           doc="(used, offered) beams of the last sensor update (beam skipping leaves some out); None")
 
+    refused_jumps = property(lambda self: self._step.refused_jumps,
+                             doc="sensor updates undone: they jumped to a place the scan fits worse (recovery doc)")
+
     range_scale_online = property(lambda self: self._range_scale is not None,
                                   doc="the range scale is learnt while tracking (range_scale_estimation, beam model)")
 
@@ -325,22 +328,21 @@ class Localizer:
 
     def _update_locked(self, scan: ScanData, t_s: float) -> None:
         """One scan at its time: the scan step; a re-spread or a corrected estimate (the new anchor)."""
-        out = self._step.run(scan, t_s, self.map, self.global_mode)
+        carried = self._timeline.pose_at(t_s)  # the last published pose carried to this scan (None: none)
+        watch = not self.global_mode and self._glide.jump > 0.0 and not self._glide.active  # might it jump?
+        out = self._step.run(scan, t_s, self.map, self.global_mode, carried if watch else None)
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
-        tracking = out.estimate is not None and out.switched is None and not out.respread and not self.global_mode
+        tracking = (out.estimate is not None and out.switched is None and not out.respread and not out.refused
+                    and not self.global_mode)
         if self._range_scale is not None and tracking and not self._recovery.holding:
             self._update_range_scale(out)
-        watch = tracking and self._glide.jump > 0.0 and not self._glide.active  # might this update jump?
-        published = carried = None  # the last published pose carried to this scan, while a glide needs it
-        if out.switched is not None or self._glide.active or watch:
-            carried = self._timeline.pose_at(t_s)
-            published = None if carried is None else carried.pose
+        published = None if carried is None else carried.pose
         if out.switched is not None:
             self.recoveries += 1
             self._glide.start(published, out.switched.pose)
-        elif watch and self._glide.is_jump(carried, out.estimate.pose):
+        elif watch and tracking and self._glide.is_jump(carried, out.estimate.pose):
             self._glide.start(published, out.estimate.pose)
         if out.estimate is not None:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())

@@ -123,7 +123,8 @@ PARAMETERS = [
     Param("recovery_particles", 2000, "particles of a challenger cloud", lambda v: isinstance(v, int) and v >= 10,
           "an integer >= 10"),
     Param("recovery_margin", 0.15, "a challenger wins an update when its scan-map agreement beats the estimate's "
-          "by this much (and reaches health_lost_floor)", _fraction, "in [0, 1]"),
+          "by this much (and reaches health_lost_floor); a tracking jump (recovery_jump_glide) must beat the "
+          "published pose's by as much", _fraction, "in [0, 1]"),
     Param("recovery_confirm_updates", 20, "a challenger replaces the cloud after winning this many updates in a row",
           lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
     Param("recovery_confirm_distance", 1.0, "... while the robot travelled at least this far (m)", _non_negative,
@@ -137,8 +138,10 @@ PARAMETERS = [
           "robot was carried elsewhere) is published at once", _non_negative, ">= 0"),
     Param("recovery_jump_glide", 0.25, "while tracking, a sensor update that moves the estimate farther than this (m) "
           "from the published pose carried by odometry, and outside three standard deviations of that pose's "
-          "covariance (a cloud that changed its mind between two places, not one converging), is published as a "
-          "glide, as after a switch (0: at once)", _non_negative, ">= 0"),
+          "covariance (a cloud that changed its mind between two places, not one converging), is kept only when "
+          "the scan's map agreement there beats the published pose's by recovery_margin (else the update is "
+          "undone) and is published as a glide, as after a switch (0: no such check, at once)", _non_negative,
+          ">= 0"),
     Param("recovery_challenger_timeout", 8.0, "a challenger that has not won within this long (s, scan clock) is "
           "dropped", _positive, "> 0"),
     Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "

@@ -32,9 +32,17 @@ the fast average stays low for ``health_lost_updates`` updates. Then, with ``rec
                diagonal, until f = 1: a confirmed correction is never one jump of the published pose.
                A switch farther than ``recovery_switch_glide_max`` (the robot was carried elsewhere) is
                published at once: gliding would draw a path through walls
-    jump       a tracking update (no switch) whose estimate lies more than ``recovery_jump_glide`` m from
+    jump       a tracking update (no switch) whose estimate x̂ lies more than ``recovery_jump_glide`` m from
                x̄ and more than JUMP_SIGMAS standard deviations of x̄'s covariance (a cloud whose weight
-               moved from one place to another after the map disagreed for a while) glides the same way
+               moved from one place to another after the map disagreed for a while) is a jump. It is
+               kept only if the scan fits there clearly better than at x̄,
+
+                   a(x̂) ≥ a(x̄) + recovery_margin,
+
+               and then glides the same way; otherwise the update is undone (the cloud as before it,
+               moved on odometry, one log line): one scan never moves the pose to a place that does not
+               explain it better — after a hold, a cloud spread by odometry noise can otherwise collapse
+               onto a look-alike pose half a metre and tens of degrees away from where odometry says
 
 A global spread (start, service) is judged only once converged (cloud std < global_converged_std):
 before that, its mean says nothing about any of its hypotheses. ``status`` is what the node reports.
@@ -151,6 +159,17 @@ class RecoveryPolicy:
         return ""
 
 
+def is_jump(published, pose, jump: float) -> bool:
+    """Does a tracking update that moves the estimate from the ``published`` estimate (a PoseEstimate
+    carried to the update's time; None: none) to ``pose`` jump? Farther than ``jump`` m (0: never) and
+    outside ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a
+    wide initial pose moves within its own spread: no jump)."""
+    if jump <= 0.0 or published is None:
+        return False
+    dist = math.hypot(pose[0] - published.pose[0], pose[1] - published.pose[1])
+    return dist > jump and dist > JUMP_SIGMAS * cloud_spread(published.covariance)
+
+
 class SwitchGlide:
     """The published estimate's way to a place a challenger won (module doc, "glide")."""
 
@@ -161,14 +180,7 @@ class SwitchGlide:
         self.active = False
 
     def is_jump(self, published, pose) -> bool:
-        """Does a tracking update that moves the estimate from the ``published`` estimate (a PoseEstimate
-        carried to the update's time; None: none) to ``pose`` jump? Farther than ``jump`` and outside
-        ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a wide
-        initial pose moves within its own spread and does not glide)."""
-        if self.jump <= 0.0 or published is None:
-            return False
-        dist = math.hypot(pose[0] - published.pose[0], pose[1] - published.pose[1])
-        return dist > self.jump and dist > JUMP_SIGMAS * cloud_spread(published.covariance)
+        return is_jump(published, pose, self.jump)
 
     def start(self, published, pose) -> None:
         """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""

@@ -10,7 +10,8 @@ For a scan at time t_s (scan clock) with the particles at t_filter:
     seed       a pending global spread is re-seeded from these beams (``GlobalSeeder``)
     deskew     beam b cast from the laser pose at its own time t_b = stamp + i_b · time_increment:
                δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
-    update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``)
+    update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``); an update that
+               jumps from the published pose to a place the scan fits no better is undone (``recovery``)
     judge      converged / tracking / holding, and a challenger's search, update and switch
                (``RecoveryPolicy``); while holding, the scan updates only the challenger: the cloud
                moves on odometry
@@ -30,7 +31,7 @@ from localization.core.geometry import compose, integrate_twists, inverse
 from localization.core.global_seeder import GlobalSeeder
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.policies import UpdatePolicy
-from localization.core.recovery import RecoveryPolicy
+from localization.core.recovery import RecoveryPolicy, is_jump
 from localization.core.scan import Scan, ScanData, downsample_scan, first_beam_time, sweep_increment
 from localization.core.timeline import OdometryTimeline
 
@@ -44,6 +45,7 @@ class StepOutcome:
     beams: Scan | None = None
     range_limits: tuple[float, float] | None = None
     offsets: np.ndarray | None = None  # (B, 3); None: a rigid scan
+    refused: bool = False  # the update jumped to a place the scan fits worse: undone (the cloud moved on odometry)
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
@@ -82,6 +84,7 @@ class ScanStep:
         self.t_filter: float | None = None  # s, scan clock: the time the particles describe
         self.t_update: float | None = None  # s, scan clock: the last sensor update
         self.impossible = 0  # scans in a row that gave every particle likelihood 0
+        self.refused_jumps = 0  # updates undone: they jumped to a place the scan fits worse
 
     def restart(self, t: float | None) -> None:
         """The particles were (re-)initialised at time t."""
@@ -104,7 +107,9 @@ class ScanStep:
                     cloud.motion_update(delta)
         self.t_filter = t
 
-    def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool) -> StepOutcome:
+    def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool,
+            published=None) -> StepOutcome:
+        """``published``: the published estimate carried to t_s (a PoseEstimate; None: no jump check)."""
         p, model, pf, recovery = self.params, self.pf.sensor_model, self.pf, self.recovery
         self.move_to(t_s)
         t_last = self.timeline.usable(self.t_update)
@@ -121,6 +126,8 @@ class ScanStep:
         self.seeder.seed(pf, occupancy_map, b.ranges, b.angles, rmax)
         offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset, p.scan_stamp,
                                  p.scan_stamp_offset) if p.deskew and model.supports_deskew else None
+        guard = published is not None and not recovery.holding and not global_mode
+        before = pf.snapshot() if guard else None
         if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
             self.impossible += 1
             if self.impossible < p.max_impossible_scans:
@@ -132,6 +139,9 @@ class ScanStep:
         self.impossible, self.t_update = 0, t_s
         self.policy.updated(speed, yaw_rate)
         est = pf.estimate()  # (holding: the cloud moved on odometry only)
+        refused = guard and self._refuse_jump(published, est.pose, beams, before)
+        if refused:
+            est = pf.estimate()
         verdict = recovery.judge(est.pose, est.covariance, beams, global_mode)
         if verdict.converged:
             self.seeder.converged(pf, est.pose)
@@ -139,7 +149,22 @@ class ScanStep:
             self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
         return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
                                                                   verdict.agreement, distance),
-                           beams=b, range_limits=(rmin, rmax), offsets=offsets)
+                           beams=b, range_limits=(rmin, rmax), offsets=offsets, refused=refused)
+
+    def _refuse_jump(self, published, pose, beams, before) -> bool:
+        """Undo an update that jumped (``recovery.is_jump``) from the published pose to a place the scan
+        fits worse than there: the scan–map agreement at ``pose`` below the published pose's."""
+        if not is_jump(published, pose, self.params.recovery_jump_glide):
+            return False
+        moved, kept = self.recovery.score(pose, beams), self.recovery.score(published.pose, beams)
+        if not moved < kept + self.params.recovery_margin:
+            return False
+        self.pf.restore(before)
+        self.refused_jumps += 1
+        self.warn("jump-refused", f"a sensor update moved the estimate {math.dist(pose[:2], published.pose[:2]):.2f} m "
+                  f"to a place the scan fits worse (agreement {moved:.2f}, {kept:.2f} at the published pose): "
+                  "update undone, the pose moves on odometry")
+        return True
 
     def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float,
                    distance: float):

@@ -329,6 +329,7 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
     truth_p_arr = np.asarray(truth_poses, dtype=float).reshape(-1, 3)
     order = np.argsort(truth_t_arr, kind="stable")
     counts["recoveries"] = localizer.recoveries
+    counts["refused_jumps"] = localizer.refused_jumps
     est_t, est_poses = log.estimates()
     corrected_t, corrected_poses = log.corrections()
     scan_t, scan_poses = log.scan_track()
@@ -614,7 +615,8 @@ def summary_table(metrics: dict, out_dir: Path | None = None) -> str:
     rows += [("scan-map agreement", f"median {_fmt(ag['median'])}  mean {_fmt(ag['mean'])}  p05 {_fmt(ag['p05'])}"),
              ("filter health", f"median {_fmt((m.get('health') or {}).get('median'))}  "
                                f"min {_fmt((m.get('health') or {}).get('min'))}; "
-                               f"{m.get('recoveries', 0)} recoveries (global re-spreads)"),
+                               f"{m.get('recoveries', 0)} recoveries (switches and re-spreads), "
+                               f"{m.get('refused_jumps', 0)} updates undone (a jump to a worse fit)"),
              ("max jump", f"{m['max_jump_m']:.3f} m between consecutive estimates"),
              ("sensor update", f"median {_fmt(m['sensor_update_ms']['median_ms'], '.1f')} ms, "
                                f"p95 {_fmt(m['sensor_update_ms']['p95_ms'], '.1f')} ms "

@@ -286,6 +286,7 @@ def yardstick_table(results: list) -> str:
 CONVERGED_M = 0.5  # m: converged once the estimate stays this close to the yardstick's confident poses ...
 CONVERGED_HOLD_S = 5.0  # s: ... for this long
 EARLY_REFERENCE_S = 10.0  # s: the yardstick must be confident this soon after the start to time convergence
+END_WINDOW_S = 10.0  # s: the end of a bag, for its end agreement
 HEALTHY_AGREEMENT = 0.8  # else: converged at the first scan whose agreement reaches this
 
 
@@ -326,7 +327,11 @@ def pioneer_metrics(res, holding: StatusCounter | None = None) -> dict:
     from localization.eval import metrics as M
     p = res.options.params
     t0 = res.init_t if res.init_t is not None else (float(res.scan_t[0]) if len(res.scan_t) else 0.0)
-    out = {"max_jump_m": M.max_jump(res.est_poses), "recoveries": int(res.counts.get("recoveries", 0))}
+    out = {"max_jump_m": M.max_jump(res.est_poses), "recoveries": int(res.counts.get("recoveries", 0)),
+           "refused_jumps": int(res.counts.get("refused_jumps", 0))}
+    if len(res.agreement_t):  # where the bag ends: do the scans fit the map there (the yardstick may not know)?
+        end = np.asarray(res.agreement_t) >= res.agreement_t[-1] - END_WINDOW_S
+        out["end_agreement_median"] = float(np.nanmedian(np.asarray(res.agreement)[end]))
     ref = res.reference
     conv, how, conf_agree = None, None, None
     if ref is not None and ref.good.any() and len(res.scan_t) >= 2:
@@ -373,12 +378,15 @@ def pioneer_table(results: list) -> str:
                 f"{pm.get('converge_by', ''):<16} {pm.get('max_jump_m', 0.0):>7.2f}m "
                 f"{_f(pm.get('max_jump_after_converge_m')):>10} {pm.get('recoveries', 0):>5} "
                 f"{'n/a' if pm.get('false_recoveries') is None else pm['false_recoveries']:>5} "
+                f"{pm.get('refused_jumps', 0):>6} "
                 f"{_f(pm.get('confident_agreement_median')):>9} {_f(pm.get('error_vs_yardstick_median_m')):>7} "
                 f"{_f(pm.get('off_share')):>6} "
-                f"{_f(pm.get('holding_share')):>8} {_f(pm.get('health_lost_share')):>8}")
+                f"{_f(pm.get('holding_share')):>8} {_f(pm.get('health_lost_share')):>8} "
+                f"{_f(pm.get('end_agreement_median')):>7}")
     return _table(f"{'bag':<9} {'start':<13} {'converge':>9} {'(by)':<16} {'max jump':>8} {'after conv':>10} "
-                  f"{'recov':>5} {'false':>5} "
-                  f"{'agreement':>9} {'ref med':>7} {'off':>6} {'disagree':>8} {'health<':>8}", results, 9, row)
+                  f"{'recov':>5} {'false':>5} {'undone':>6} "
+                  f"{'agreement':>9} {'ref med':>7} {'off':>6} {'disagree':>8} {'health<':>8} {'end agr':>7}",
+                  results, 9, row)
 
 
 ONLY = ("heldout", "pioneer")
@@ -562,12 +570,14 @@ def main(argv=None) -> int:
               f"(or, without a confident pose in the first {EARLY_REFERENCE_S:.0f} s, the first agreement >= "
               f"{HEALTHY_AGREEMENT}); after conv = largest jump between consecutive estimates once converged; "
               "recov = recoveries (a challenger replaced the cloud, or an impossible cloud was re-spread); false = "
-              "times the estimate went to a place > 1 m from the yardstick once converged; off = share of confident "
+              "times the estimate went to a place > 1 m from the yardstick once converged; undone = sensor updates "
+              "undone because they jumped to a place the scan fits worse; off = share of confident "
               f"scans > {CONVERGED_M} m from the yardstick once converged; "
               "agreement = median scan-map agreement where the "
               "yardstick is confident; ref med = median error vs the yardstick there (m); disagree = share of scans "
               "after which Localizer.status said the scans disagree with the map; health< = share of sensor "
-              "updates with health below health_lost_floor")
+              f"updates with health below health_lost_floor; end agr = median scan-map agreement over the last "
+              f"{END_WINDOW_S:.0f} s (where the yardstick may not be confident)")
         print(pioneer_table(pioneer_res))
     out.mkdir(parents=True, exist_ok=True)
     summary = {r["job"]["label"] + (f"@{r['job']['scale']}" if "scale" in r["job"] else "")

@@ -95,6 +95,15 @@ class MonteCarloLocalizer:
         self.num_particles = len(self.particles)
         self._reset_weights()
 
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """The particles and their log weights (copies), for ``restore``."""
+        return self.particles.copy(), self.log_weights.copy()
+
+    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
+        """Back to a ``snapshot`` (an update undone)."""
+        self.particles, self.log_weights = snapshot[0].copy(), snapshot[1].copy()
+        self.num_particles = len(self.particles)
+
     def _reset_weights(self) -> None:
         self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
         self.initialized = True
