@@ -138,7 +138,7 @@ class Localizer:
                           doc="(used, offered) beams of the last sensor update (beam skipping leaves some out); None")
 
     refused_jumps = property(lambda self: self._step.refused_jumps,
-                             doc="sensor updates undone: they jumped to a place the scan fits worse (recovery doc)")
+                             doc="sensor updates undone: they jumped to a place the scan fits no clearly better")
 
     range_scale_online = property(lambda self: self._range_scale is not None,
                                   doc="the range scale is learnt while tracking (range_scale_estimation, beam model)")

@@ -11,7 +11,7 @@ For a scan at time t_s (scan clock) with the particles at t_filter:
     deskew     beam b cast from the laser pose at its own time t_b = stamp + i_b · time_increment:
                δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
     update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``); an update that
-               jumps from the published pose to a place the scan fits no better is undone (``recovery``)
+               jumps from the published pose to a place the scan fits no clearly better is undone (``recovery``)
     judge      converged / tracking / holding, and a challenger's search, update and switch
                (``RecoveryPolicy``); while holding, the scan updates only the challenger: the cloud
                moves on odometry
@@ -45,7 +45,7 @@ class StepOutcome:
     beams: Scan | None = None
     range_limits: tuple[float, float] | None = None
     offsets: np.ndarray | None = None  # (B, 3); None: a rigid scan
-    refused: bool = False  # the update jumped to a place the scan fits worse: undone (the cloud moved on odometry)
+    refused: bool = False  # the update jumped to a place the scan fits no clearly better: undone (moved on odometry)
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
@@ -84,7 +84,7 @@ class ScanStep:
         self.t_filter: float | None = None  # s, scan clock: the time the particles describe
         self.t_update: float | None = None  # s, scan clock: the last sensor update
         self.impossible = 0  # scans in a row that gave every particle likelihood 0
-        self.refused_jumps = 0  # updates undone: they jumped to a place the scan fits worse
+        self.refused_jumps = 0  # updates undone: they jumped to a place the scan fits no clearly better
 
     def restart(self, t: float | None) -> None:
         """The particles were (re-)initialised at time t."""
@@ -153,7 +153,8 @@ class ScanStep:
 
     def _refuse_jump(self, published, pose, beams, before) -> bool:
         """Undo an update that jumped (``recovery.is_jump``) from the published pose to a place the scan
-        fits worse than there: the scan–map agreement at ``pose`` below the published pose's."""
+        fits no clearly better: the scan–map agreement at ``pose`` below the published pose's plus
+        ``recovery_margin``."""
         if not is_jump(published, pose, self.params.recovery_jump_glide):
             return False
         moved, kept = self.recovery.score(pose, beams), self.recovery.score(published.pose, beams)
@@ -162,8 +163,8 @@ class ScanStep:
         self.pf.restore(before)
         self.refused_jumps += 1
         self.warn("jump-refused", f"a sensor update moved the estimate {math.dist(pose[:2], published.pose[:2]):.2f} m "
-                  f"to a place the scan fits worse (agreement {moved:.2f}, {kept:.2f} at the published pose): "
-                  "update undone, the pose moves on odometry")
+                  f"to a place the scan fits no clearly better (agreement {moved:.2f}, {kept:.2f} at the published "
+                  "pose): update undone, the pose moves on odometry")
         return True
 
     def _challenge(self, occupancy_map: OccupancyMap, b, beams, offsets, t_s: float, main_agreement: float,

@@ -532,7 +532,7 @@ class LocalizationMixin:
                                        "parameters": "laser_offset_* parameters"}.get(self._laser_source,
                                                                                       "not decided yet")
         status.values["recoveries"] = str(loc.recoveries)
-        status.values["updates undone"] = f"{loc.refused_jumps} (jumped to a place the scan fits worse)"
+        status.values["updates undone"] = f"{loc.refused_jumps} (jumped to a place the scan fits no clearly better)"
         status.values["range scale"] = f"{loc.range_scale:.4f} " + (
             "(learnt online)" if loc.range_scale_online else "(lidar_scale_to_map_scale)")
         used = loc.beams_used

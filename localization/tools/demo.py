@@ -571,7 +571,7 @@ def main(argv=None) -> int:
               f"{HEALTHY_AGREEMENT}); after conv = largest jump between consecutive estimates once converged; "
               "recov = recoveries (a challenger replaced the cloud, or an impossible cloud was re-spread); false = "
               "times the estimate went to a place > 1 m from the yardstick once converged; undone = sensor updates "
-              "undone because they jumped to a place the scan fits worse; off = share of confident "
+              "undone because they jumped to a place the scan fits no clearly better; off = share of confident "
               f"scans > {CONVERGED_M} m from the yardstick once converged; "
               "agreement = median scan-map agreement where the "
               "yardstick is confident; ref med = median error vs the yardstick there (m); disagree = share of scans "
