@@ -252,7 +252,7 @@ def test_a_near_switch_is_published_without_a_jump(stata):
 
     real_run, runs = loc._step.run, []
 
-    def run(scan, t_s, occupancy_map, global_mode, published=None):  # the scan step, a switch on its second scan
+    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # the scan step, a switch on its second scan
         real_run(scan, t_s, occupancy_map, global_mode)  # (the particles moved to the scan's time)
         runs.append(t_s)
         if len(runs) == 2:
@@ -286,7 +286,7 @@ def _tracking_jump(stata, start_cov, jump_glide=None):
     there = start + [0.5, 0.35, 0.05]
     real_run, runs = loc._step.run, []
 
-    def run(scan, t_s, occupancy_map, global_mode, published=None):  # on its second scan the cloud is elsewhere
+    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # on its second scan the cloud is elsewhere
         out = real_run(scan, t_s, occupancy_map, global_mode)
         runs.append(t_s)
         if len(runs) == 2:

@@ -328,9 +328,8 @@ class Localizer:
 
     def _update_locked(self, scan: ScanData, t_s: float) -> None:
         """One scan at its time: the scan step; a re-spread or a corrected estimate (the new anchor)."""
-        carried = self._timeline.pose_at(t_s)  # the last published pose carried to this scan (None: none)
         watch = not self.global_mode and self._glide.jump > 0.0 and not self._glide.active  # might it jump?
-        out = self._step.run(scan, t_s, self.map, self.global_mode, carried if watch else None)
+        out = self._step.run(scan, t_s, self.map, self.global_mode, check_jump=watch)
         if out.respread:
             self.recoveries += 1
             self._spread_locked(t_s)
@@ -338,6 +337,9 @@ class Localizer:
                     and not self.global_mode)
         if self._range_scale is not None and tracking and not self._recovery.holding:
             self._update_range_scale(out)
+        carried = out.published  # the last published pose carried to this scan, when a glide needs it
+        if carried is None and (out.switched is not None or self._glide.active or (watch and tracking)):
+            carried = self._timeline.pose_at(t_s)
         published = None if carried is None else carried.pose
         if out.switched is not None:
             self.recoveries += 1

@@ -33,7 +33,7 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.policies import UpdatePolicy
 from localization.core.recovery import RecoveryPolicy, is_jump
 from localization.core.scan import Scan, ScanData, downsample_scan, first_beam_time, sweep_increment
-from localization.core.timeline import OdometryTimeline
+from localization.core.timeline import OdometryTimeline, PoseEstimate
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,7 @@ class StepOutcome:
     range_limits: tuple[float, float] | None = None
     offsets: np.ndarray | None = None  # (B, 3); None: a rigid scan
     refused: bool = False  # the update jumped to a place the scan fits no clearly better: undone (moved on odometry)
+    published: PoseEstimate | None = None  # the published pose carried to the scan's time, when the jump check read it
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
@@ -108,8 +109,9 @@ class ScanStep:
         self.t_filter = t
 
     def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool,
-            published=None) -> StepOutcome:
-        """``published``: the published estimate carried to t_s (a PoseEstimate; None: no jump check)."""
+            check_jump: bool = False) -> StepOutcome:
+        """``check_jump``: undo an update that jumps from the published pose (carried to t_s) to a place
+        the scan fits no clearly better (``_refuse_jump``)."""
         p, model, pf, recovery = self.params, self.pf.sensor_model, self.pf, self.recovery
         self.move_to(t_s)
         t_last = self.timeline.usable(self.t_update)
@@ -126,7 +128,8 @@ class ScanStep:
         self.seeder.seed(pf, occupancy_map, b.ranges, b.angles, rmax)
         offsets = deskew_offsets(scan, t_s, b.indices, twist, model.laser_offset, p.scan_stamp,
                                  p.scan_stamp_offset) if p.deskew and model.supports_deskew else None
-        guard = published is not None and not recovery.holding and not global_mode
+        published = self.timeline.pose_at(t_s) if check_jump and not global_mode else None
+        guard = published is not None and not recovery.holding
         before = pf.snapshot() if guard else None
         if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
             self.impossible += 1
@@ -149,7 +152,8 @@ class ScanStep:
             self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
         return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
                                                                   verdict.agreement, distance),
-                           beams=b, range_limits=(rmin, rmax), offsets=offsets, refused=refused)
+                           beams=b, range_limits=(rmin, rmax), offsets=offsets, refused=refused,
+                           published=published)
 
     def _refuse_jump(self, published, pose, beams, before) -> bool:
         """Undo an update that jumped (``recovery.is_jump``) from the published pose to a place the scan

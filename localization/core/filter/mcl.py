@@ -100,8 +100,8 @@ class MonteCarloLocalizer:
         return self.particles.copy(), self.log_weights.copy()
 
     def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
-        """Back to a ``snapshot`` (an update undone)."""
-        self.particles, self.log_weights = snapshot[0].copy(), snapshot[1].copy()
+        """Back to a ``snapshot`` (an update undone); the snapshot's arrays become the filter's."""
+        self.particles, self.log_weights = snapshot
         self.num_particles = len(self.particles)
 
     def _reset_weights(self) -> None:
