@@ -15,9 +15,10 @@ from localization.core.occupancy_map import load_map
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.raycast.exact import ExactRayCaster
-from localization.core.recovery import SwitchGlide
+from localization.core.recovery import SwitchGlide, is_jump
 from localization.core.scan import ScanData
 from localization.core.scan_step import StepOutcome
+from localization.core.timeline import PoseEstimate
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder
 from localization.sensor_model import SensorModel
@@ -123,8 +124,10 @@ def test_kidnapped_robot_recovers(stata, caplog):
     assert run.recoveries >= 1 and "localization lost" in caplog.text
     cmp = RB.ct_errors(rec, run)
     assert cmp.ct_error[(cmp.t > 1.0) & (cmp.t < kidnap_at)].max() < 0.3  # tracking before
-    back = RB.settle_time(cmp, kidnap_at)
-    assert back is not None and back < 10.0, back
+    back = RB.settle_time(cmp, kidnap_at)  # the search and confirmation, then the glide over the kidnap's 30+ m
+    assert back is not None and back < RB.KIDNAP_WITHIN_S, back
+    after = run.est_t > kidnap_at + 0.1  # the published pose never jumps, not even to where the robot was carried
+    assert np.hypot(*np.diff(run.est_poses[after, :2], axis=0).T).max() < loc.params.recovery_switch_step + 0.1
     assert loc.num_particles == loc.params.num_particles  # shrunk back after converging
     assert run.health[-20:].min() > 0.7
 
@@ -232,8 +235,11 @@ def test_a_switch_moves_the_published_pose_in_bounded_steps_to_the_new_place():
     assert len(path) - 1 == 3
     assert turns.sum() == pytest.approx(2 * np.pi - 6.0)  # the short way round through ±π
     far = SwitchGlide(step=0.25, turn=0.2, farthest=2.0)
-    far.start(published, published + [3.0, 0.0, 0.0])  # carried elsewhere: published at once
+    far.start(published, published + [3.0, 0.0, 0.0])  # farther than farthest: published at once
     assert not far.active and np.array_equal(far.apply(published, target, cov)[0], target)
+    unbounded = SwitchGlide(step=0.25, turn=0.2, farthest=0.0)  # the default: every switch glides
+    unbounded.start(published, published + [30.0, 0.0, 0.0])
+    assert unbounded.active
     off = SwitchGlide(step=0.0, turn=0.2, farthest=2.0)
     off.start(published, target)
     assert not off.active
@@ -271,6 +277,59 @@ def test_a_near_switch_is_published_without_a_jump(stata):
     assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and steps.max() > 0.2  # in steps ...
     assert np.allclose(poses[-1], near)  # ... to the place the challenger won
     assert loc.recoveries == 1
+
+
+def test_a_jump_is_judged_by_the_published_covariance_in_the_direction_of_the_move():
+    """A cloud spread 0.4 m along x (a hold) and 3 cm along y: 1 m along x is within its spread, 1 m
+    along y (or 0.3 m at 45°, outside 3σ there) is a jump; a round 0.5 m cloud owns a 1 m move."""
+    elongated = PoseEstimate(stamp=0.0, pose=np.zeros(3), covariance=np.diag([0.4 ** 2, 0.03 ** 2, 0.01]))
+    assert not is_jump(elongated, np.array([1.0, 0.0, 0.0]), 0.25)
+    assert is_jump(elongated, np.array([0.0, 1.0, 0.0]), 0.25)
+    assert is_jump(elongated, np.array([0.3, 0.3, 0.0]), 0.25)
+    assert not is_jump(elongated, np.array([0.0, 0.2, 0.0]), 0.25)  # not farther than recovery_jump_glide
+    assert not is_jump(elongated, np.array([0.0, 1.0, 0.0]), 0.0)  # the check off
+    round_ = PoseEstimate(stamp=0.0, pose=np.zeros(3), covariance=np.diag([0.25, 0.25, 0.01]))
+    assert not is_jump(round_, np.array([0.7, 0.7, 0.0]), 0.25)
+    point = PoseEstimate(stamp=0.0, pose=np.zeros(3), covariance=np.zeros((3, 3)))
+    assert is_jump(point, np.array([0.3, 0.0, 0.0]), 0.25)
+
+
+@pytest.mark.parametrize("glide_max", [0.0, 2.0])
+def test_a_far_switch_glides_on_with_every_scan_while_the_robot_stands(stata, glide_max):
+    """A challenger wins 3.7 m away and the robot then stands still (no sensor update): by default the
+    published estimates still reach the new place, one bounded step per scan; with
+    recovery_switch_glide_max 2 m the switch is published at once."""
+    loc = Localizer(params(num_particles=300, range_scale_estimation=False, recovery_switch_glide_max=glide_max),
+                    logging.getLogger("test.glide"))
+    loc.set_map(stata)
+    start = np.array([-2.0, 0.0, 0.0])
+    loc.set_initial_pose(start, np.diag([1e-4, 1e-4, 1e-5]))
+    far = start + [3.0, 2.1, 0.3]
+    challenger = Estimate(pose=far, covariance=np.diag([1e-4, 1e-4, 1e-5]))
+    real_run, runs = loc._step.run, []
+
+    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # a switch on the first scan, then none
+        real_run(scan, t_s, occupancy_map, global_mode)
+        runs.append(t_s)
+        if len(runs) == 1:
+            loc._pf.set_particles(np.tile(far, (300, 1)))
+            return StepOutcome(estimate=challenger, switched=challenger)
+        return StepOutcome()  # standing: no sensor update
+
+    loc._step.run = run
+    poses = []
+    for k in range(25):
+        loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
+        est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0))
+        if est is not None:
+            poses.append(est.pose)
+    poses = np.array(poses)
+    assert np.allclose(poses[-1], far) and loc.recoveries == 1
+    steps = np.hypot(*np.diff(np.vstack([start, poses])[:, :2], axis=0).T)
+    if glide_max == 0.0:  # 3.66 m in steps of 0.25 m, with scans that update nothing
+        assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and len(poses) == 15
+    else:  # farther than recovery_switch_glide_max: at once
+        assert steps[0] == pytest.approx(math.hypot(3.0, 2.1)) and len(poses) == 1
 
 
 def _tracking_jump(stata, start_cov, jump_glide=None):

@@ -346,8 +346,12 @@ class Localizer:
             self._glide.start(published, out.switched.pose)
         elif watch and tracking and self._glide.is_jump(carried, out.estimate.pose):
             self._glide.start(published, out.estimate.pose)
+        est = None
         if out.estimate is not None:
             est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
+        elif self._glide.active:  # no sensor update (e.g. standing): the glide goes on, the cloud moved on odometry
+            est = self._pf.estimate()
+        if est is not None:
             pose, cov = self._glide.apply(published, est.pose, est.covariance)
             corrected = PoseEstimate(stamp=t_s, pose=pose, covariance=cov)
             self._timeline.set_anchor(corrected)

@@ -134,11 +134,13 @@ PARAMETERS = [
           _non_negative, ">= 0"),
     Param("recovery_switch_turn", 0.2, "... and turns by at most this much (rad) per sensor update", _non_negative,
           ">= 0"),
-    Param("recovery_switch_glide_max", 2.0, "a switch to a place farther than this (m) from the published pose (the "
-          "robot was carried elsewhere) is published at once", _non_negative, ">= 0"),
+    Param("recovery_switch_glide_max", 0.0, "a switch to a place farther than this (m) from the published pose is "
+          "published at once, for a robot that may be carried elsewhere (0: every switch glides, however far)",
+          _non_negative, ">= 0"),
     Param("recovery_jump_glide", 0.25, "while tracking, a sensor update that moves the estimate farther than this (m) "
           "from the published pose carried by odometry, and outside three standard deviations of that pose's "
-          "covariance (a cloud that changed its mind between two places, not one converging), is kept only when "
+          "position covariance in the direction of the move (a cloud that changed its mind between two places, not "
+          "one converging), is kept only when "
           "the scan's map agreement there beats the published pose's by recovery_margin (else the update is "
           "undone) and is published as a glide, as after a switch (0: no such check, at once)", _non_negative,
           ">= 0"),

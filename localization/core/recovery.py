@@ -29,11 +29,14 @@ the fast average stays low for ``health_lost_updates`` updates. Then, with ``rec
                    x̄ ← x̄ + f·d,   f = min(1, recovery_switch_step / |d_xy|, recovery_switch_turn / |d_θ|)
 
                per sensor update, its covariance widened by the part still to go, (1 − f)² d dᵀ on the
-               diagonal, until f = 1: a confirmed correction is never one jump of the published pose.
-               A switch farther than ``recovery_switch_glide_max`` (the robot was carried elsewhere) is
-               published at once: gliding would draw a path through walls
+               diagonal, until f = 1: a confirmed correction is never one jump of the published pose,
+               however far (the glide is a correction, not a motion: its straight path may cross a wall,
+               and the covariance says how far there is still to go). The glide goes on with every scan,
+               the robot moving or not. ``recovery_switch_glide_max`` > 0 publishes a switch farther than
+               that at once (a robot that may be carried elsewhere)
     jump       a tracking update (no switch) whose estimate x̂ lies more than ``recovery_jump_glide`` m from
-               x̄ and more than JUMP_SIGMAS standard deviations of x̄'s covariance (a cloud whose weight
+               x̄ and more than JUMP_SIGMAS standard deviations of x̄'s position covariance Σ in the
+               direction of the move (dᵀ Σ⁻¹ d > JUMP_SIGMAS², d = x̂ − x̄ in x, y: a cloud whose weight
                moved from one place to another after the map disagreed for a while) is a jump. It is
                kept only if the scan fits there clearly better than at x̄,
 
@@ -58,6 +61,7 @@ from localization.core.geometry import wrap_angle
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
 
+COV_FLOOR = 1e-12  # m²: added to the published position covariance before inverting it (a point cloud)
 JUMP_SIGMAS = 3.0  # a tracking update's move beyond this many standard deviations of the published pose can jump
 
 TRACKING, HOLDING = "tracking", "scans disagree with the map"
@@ -162,12 +166,17 @@ class RecoveryPolicy:
 def is_jump(published, pose, jump: float) -> bool:
     """Does a tracking update that moves the estimate from the ``published`` estimate (a PoseEstimate
     carried to the update's time; None: none) to ``pose`` jump? Farther than ``jump`` m (0: never) and
-    outside ``JUMP_SIGMAS`` standard deviations of the published position (a cloud converging from a
-    wide initial pose moves within its own spread: no jump)."""
+    outside ``JUMP_SIGMAS`` standard deviations of the published position in the direction of the move,
+    d = x̂_xy − x̄_xy with dᵀ Σ_xy⁻¹ d > JUMP_SIGMAS² (a cloud converging from a wide initial pose moves
+    within its own spread: no jump; a cloud spread along its track by a hold does not make a sideways
+    move its own)."""
     if jump <= 0.0 or published is None:
         return False
-    dist = math.hypot(pose[0] - published.pose[0], pose[1] - published.pose[1])
-    return dist > jump and dist > JUMP_SIGMAS * cloud_spread(published.covariance)
+    d = np.asarray(pose[:2], dtype=float) - np.asarray(published.pose[:2], dtype=float)
+    if math.hypot(d[0], d[1]) <= jump:
+        return False
+    cov = np.asarray(published.covariance, dtype=float)[:2, :2] + COV_FLOOR * np.eye(2)
+    return float(d @ np.linalg.solve(cov, d)) > JUMP_SIGMAS ** 2
 
 
 class SwitchGlide:
@@ -175,7 +184,7 @@ class SwitchGlide:
 
     def __init__(self, step: float, turn: float, farthest: float, jump: float = 0.0):
         self.step, self.turn = float(step), float(turn)  # m, rad per sensor update (0: at once)
-        self.farthest = float(farthest)  # m: a switch farther than this is published at once
+        self.farthest = float(farthest)  # m: a switch farther than this is published at once (0: none)
         self.jump = float(jump)  # m: a tracking update that moves the estimate farther glides too (0: never)
         self.active = False
 
@@ -184,7 +193,8 @@ class SwitchGlide:
 
     def start(self, published, pose) -> None:
         """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
-        far = published is None or math.hypot(pose[0] - published[0], pose[1] - published[1]) > self.farthest
+        far = published is None or (self.farthest > 0 and
+                                    math.hypot(pose[0] - published[0], pose[1] - published[1]) > self.farthest)
         self.active = self.step > 0 and self.turn > 0 and not far
 
     def stop(self) -> None:
