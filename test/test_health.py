@@ -245,34 +245,45 @@ def test_a_switch_moves_the_published_pose_in_bounded_steps_to_the_new_place():
     assert not off.active
 
 
-def test_a_near_switch_is_published_without_a_jump(stata):
-    """A challenger wins 0.6 m from where the held cloud is: the published estimates reach it in steps
-    of at most recovery_switch_step; the cloud itself is there at once."""
-    # the scan step below returns no beams: the range scale (learnt from them) stays as configured
-    loc = Localizer(params(num_particles=300, range_scale_estimation=False), logging.getLogger("test.glide"))
-    loc.set_map(stata)
-    start = np.array([-2.0, 0.0, 0.0])
-    loc.set_initial_pose(start, np.diag([1e-4, 1e-4, 1e-5]))
-    near = start + [0.5, 0.35, 0.1]
-    challenger = Estimate(pose=near, covariance=np.diag([1e-4, 1e-4, 1e-5]))
+START = np.array([-2.0, 0.0, 0.0])  # where the switch tests' Localizer is told it is
 
+
+def _switch_published(stata, offset, switch_on: int, standing: bool, scans: int, **overrides):
+    """A Localizer at START whose scan step reports a challenger winning at START + ``offset`` on scan
+    ``switch_on`` (1-based; the cloud moved there); its other scans update at the cloud's estimate, or
+    (``standing``) update nothing. The estimates the scans returned, the challenger's pose, the Localizer."""
+    # the scan step below returns no beams: the range scale (learnt from them) stays as configured
+    loc = Localizer(params(num_particles=300, range_scale_estimation=False, **overrides),
+                    logging.getLogger("test.glide"))
+    loc.set_map(stata)
+    loc.set_initial_pose(START, np.diag([1e-4, 1e-4, 1e-5]))
+    there = START + offset
+    challenger = Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5]))
     real_run, runs = loc._step.run, []
 
-    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # the scan step, a switch on its second scan
+    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):
         real_run(scan, t_s, occupancy_map, global_mode)  # (the particles moved to the scan's time)
         runs.append(t_s)
-        if len(runs) == 2:
-            loc._pf.set_particles(np.tile(near, (300, 1)))  # the challenger's particles, in place
+        if len(runs) == switch_on:
+            loc._pf.set_particles(np.tile(there, (300, 1)))  # the challenger's particles, in place
             return StepOutcome(estimate=challenger, switched=challenger)
-        return StepOutcome(estimate=loc._pf.estimate())
+        return StepOutcome() if standing else StepOutcome(estimate=loc._pf.estimate())
 
     loc._step.run = run
     poses = []
-    for k in range(8):
+    for k in range(scans):
         loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
         est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0))
-        poses.append(est.pose)
-    poses = np.array(poses)
+        if est is not None:
+            poses.append(est.pose)
+    return np.array(poses), there, loc
+
+
+def test_a_near_switch_is_published_without_a_jump(stata):
+    """A challenger wins 0.6 m from where the held cloud is: the published estimates reach it in steps
+    of at most recovery_switch_step; the cloud itself is there at once."""
+    poses, near, loc = _switch_published(stata, [0.5, 0.35, 0.1], switch_on=2, standing=False, scans=8)
+    assert len(poses) == 8
     steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
     assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and steps.max() > 0.2  # in steps ...
     assert np.allclose(poses[-1], near)  # ... to the place the challenger won
@@ -299,33 +310,10 @@ def test_a_far_switch_glides_on_with_every_scan_while_the_robot_stands(stata, gl
     """A challenger wins 3.7 m away and the robot then stands still (no sensor update): by default the
     published estimates still reach the new place, one bounded step per scan; with
     recovery_switch_glide_max 2 m the switch is published at once."""
-    loc = Localizer(params(num_particles=300, range_scale_estimation=False, recovery_switch_glide_max=glide_max),
-                    logging.getLogger("test.glide"))
-    loc.set_map(stata)
-    start = np.array([-2.0, 0.0, 0.0])
-    loc.set_initial_pose(start, np.diag([1e-4, 1e-4, 1e-5]))
-    far = start + [3.0, 2.1, 0.3]
-    challenger = Estimate(pose=far, covariance=np.diag([1e-4, 1e-4, 1e-5]))
-    real_run, runs = loc._step.run, []
-
-    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # a switch on the first scan, then none
-        real_run(scan, t_s, occupancy_map, global_mode)
-        runs.append(t_s)
-        if len(runs) == 1:
-            loc._pf.set_particles(np.tile(far, (300, 1)))
-            return StepOutcome(estimate=challenger, switched=challenger)
-        return StepOutcome()  # standing: no sensor update
-
-    loc._step.run = run
-    poses = []
-    for k in range(25):
-        loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
-        est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0))
-        if est is not None:
-            poses.append(est.pose)
-    poses = np.array(poses)
+    poses, far, loc = _switch_published(stata, [3.0, 2.1, 0.3], switch_on=1, standing=True, scans=25,
+                                        recovery_switch_glide_max=glide_max)
     assert np.allclose(poses[-1], far) and loc.recoveries == 1
-    steps = np.hypot(*np.diff(np.vstack([start, poses])[:, :2], axis=0).T)
+    steps = np.hypot(*np.diff(np.vstack([START, poses])[:, :2], axis=0).T)
     if glide_max == 0.0:  # 3.66 m in steps of 0.25 m, with scans that update nothing
         assert steps.max() <= loc.params.recovery_switch_step + 1e-9 and len(poses) == 15
     else:  # farther than recovery_switch_glide_max: at once
@@ -350,8 +338,10 @@ def _tracking_jump(stata, start_cov, jump_glide=None):
         runs.append(t_s)
         if len(runs) == 2:
             loc._pf.set_particles(np.tile(there, (300, 1)))
-        if len(runs) >= 2:
-            return StepOutcome(estimate=Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5])))
+        if len(runs) >= 2:  # the move kept (this fake scan has no beams to score it), judged as the step does
+            published = loc._timeline.pose_at(t_s) if check_jump else None
+            return StepOutcome(estimate=Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5])),
+                               published=published, jumped=is_jump(published, there, loc.params.recovery_jump_glide))
         return out
 
     loc._step.run = run

@@ -111,8 +111,7 @@ class Localizer:
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
         self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
-        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max,
-                                  p.recovery_jump_glide)
+        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
         self._range_scale = None  # RangeScaleEstimator (range_scale_estimation with the beam model)
         if p.range_scale_estimation:
             if isinstance(self._pf.sensor_model, BeamModel):
@@ -328,7 +327,7 @@ class Localizer:
 
     def _update_locked(self, scan: ScanData, t_s: float) -> None:
         """One scan at its time: the scan step; a re-spread or a corrected estimate (the new anchor)."""
-        watch = not self.global_mode and self._glide.jump > 0.0 and not self._glide.active  # might it jump?
+        watch = not self.global_mode and self.params.recovery_jump_glide > 0.0 and not self._glide.active  # jumps?
         out = self._step.run(scan, t_s, self.map, self.global_mode, check_jump=watch)
         if out.respread:
             self.recoveries += 1
@@ -338,13 +337,13 @@ class Localizer:
         if self._range_scale is not None and tracking and not self._recovery.holding:
             self._update_range_scale(out)
         carried = out.published  # the last published pose carried to this scan, when a glide needs it
-        if carried is None and (out.switched is not None or self._glide.active or (watch and tracking)):
+        if carried is None and (out.switched is not None or self._glide.active):
             carried = self._timeline.pose_at(t_s)
         published = None if carried is None else carried.pose
         if out.switched is not None:
             self.recoveries += 1
             self._glide.start(published, out.switched.pose)
-        elif watch and tracking and self._glide.is_jump(carried, out.estimate.pose):
+        elif out.jumped:  # kept: the scan fits the new place clearly better
             self._glide.start(published, out.estimate.pose)
         est = None
         if out.estimate is not None:

@@ -182,14 +182,10 @@ def is_jump(published, pose, jump: float) -> bool:
 class SwitchGlide:
     """The published estimate's way to a place a challenger won (module doc, "glide")."""
 
-    def __init__(self, step: float, turn: float, farthest: float, jump: float = 0.0):
+    def __init__(self, step: float, turn: float, farthest: float):
         self.step, self.turn = float(step), float(turn)  # m, rad per sensor update (0: at once)
         self.farthest = float(farthest)  # m: a switch farther than this is published at once (0: none)
-        self.jump = float(jump)  # m: a tracking update that moves the estimate farther glides too (0: never)
         self.active = False
-
-    def is_jump(self, published, pose) -> bool:
-        return is_jump(published, pose, self.jump)
 
     def start(self, published, pose) -> None:
         """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""

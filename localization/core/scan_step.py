@@ -46,6 +46,7 @@ class StepOutcome:
     range_limits: tuple[float, float] | None = None
     offsets: np.ndarray | None = None  # (B, 3); None: a rigid scan
     refused: bool = False  # the update jumped to a place the scan fits no clearly better: undone (moved on odometry)
+    jumped: bool = False  # the update jumped to a place the scan fits clearly better: kept, to be published as a glide
     published: PoseEstimate | None = None  # the published pose carried to the scan's time, when the jump check read it
 
 
@@ -110,8 +111,8 @@ class ScanStep:
 
     def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool,
             check_jump: bool = False) -> StepOutcome:
-        """``check_jump``: undo an update that jumps from the published pose (carried to t_s) to a place
-        the scan fits no clearly better (``_refuse_jump``)."""
+        """``check_jump``: an update that jumps from the published pose (carried to t_s) is undone when the
+        scan fits the new place no clearly better (``_refuse_jump``), else kept and reported (``jumped``)."""
         p, model, pf, recovery = self.params, self.pf.sensor_model, self.pf, self.recovery
         self.move_to(t_s)
         t_last = self.timeline.usable(self.t_update)
@@ -142,7 +143,8 @@ class ScanStep:
         self.impossible, self.t_update = 0, t_s
         self.policy.updated(speed, yaw_rate)
         est = pf.estimate()  # (holding: the cloud moved on odometry only)
-        refused = guard and self._refuse_jump(published, est.pose, beams, before)
+        jumped = guard and is_jump(published, est.pose, p.recovery_jump_glide)
+        refused = jumped and self._refuse_jump(published, est.pose, beams, before)
         if refused:
             est = pf.estimate()
         verdict = recovery.judge(est.pose, est.covariance, beams, global_mode)
@@ -153,14 +155,12 @@ class ScanStep:
         return StepOutcome(estimate=est, switched=self._challenge(occupancy_map, b, beams, offsets, t_s,
                                                                   verdict.agreement, distance),
                            beams=b, range_limits=(rmin, rmax), offsets=offsets, refused=refused,
-                           published=published)
+                           jumped=jumped and not refused, published=published)
 
     def _refuse_jump(self, published, pose, beams, before) -> bool:
         """Undo an update that jumped (``recovery.is_jump``) from the published pose to a place the scan
         fits no clearly better: the scan–map agreement at ``pose`` below the published pose's plus
-        ``recovery_margin``."""
-        if not is_jump(published, pose, self.params.recovery_jump_glide):
-            return False
+        ``recovery_margin``. True: undone."""
         moved, kept = self.recovery.score(pose, beams), self.recovery.score(published.pose, beams)
         if not moved < kept + self.params.recovery_margin:
             return False
