@@ -18,8 +18,10 @@ def _fake_calibrator(table):
 
 
 TABLE = {b: {"odom_time_offset_s": 0.1 * 3 ** i, "odom_speed_scale": 1.0 + 0.01 * 3 ** i,
+             "odom_yaw_rate_scale": 1.0 - 0.02 * 3 ** i, "odom_yaw_rate_bias": 0.001 * 3 ** i,
+             "laser_offset_x": 0.2 + 0.01 * 3 ** i,
              "lidar_scale_to_map_scale": 1.0 - 0.001 * 3 ** i, "map_wall_depth": 0.01 * 2 ** i,
-             "laser_offset_x": 9.0}
+             "laser_offset_y": 9.0}
          for i, b in enumerate(("bag1", "bag2", "bag3"))}  # no bag's fold mean equals the all-bags mean
 
 
@@ -33,7 +35,7 @@ def test_heldout_fold_never_uses_its_own_bag():
         for key, param in D.HELDOUT_KEYS.items():
             assert fold[param] == pytest.approx(np.mean([TABLE[b][key] for b in others]))
             assert fold[param] != pytest.approx(np.mean([TABLE[b][key] for b in TABLE]))  # not the all-bags value
-        assert "laser_offset_x" not in fold  # only the calibrated values; the rest stay real_params.yaml's
+        assert "laser_offset_y" not in fold  # only what the parameter file takes from calibration
     assert sorted(calls) == ["bag1", "bag2", "bag3"]  # each bag calibrated once
 
 
@@ -44,6 +46,30 @@ def test_heldout_fold_of_a_bag_changes_only_with_the_other_bags():
     b = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(wild)[0])
     assert a["bag2"] == b["bag2"]
     assert a["bag1"]["odom_time_offset"] != pytest.approx(b["bag1"]["odom_time_offset"])
+
+
+def test_heldout_keys_are_what_the_robot_calibrates():
+    # the RACECAR takes every calibrated odometry and lidar value from its bags: a fold replaces them all
+    assert set(D.heldout_keys("real_params.yaml").values()) == {
+        "odom_time_offset", "odom_speed_scale", "odom_yaw_rate_scale", "odom_yaw_rate_bias", "laser_offset_x",
+        "lidar_scale_to_map_scale", "map_wall_depth"}
+    # the Pioneer's laser mount comes from its bags' TF and its wall depth is pinned: a fold leaves them
+    pioneer = D.heldout_keys("/somewhere/config/pioneer_params.yaml")
+    assert "laser_offset_x" not in pioneer.values() and "map_wall_depth" not in pioneer.values()
+    assert "odom_yaw_rate_scale" in pioneer.values()
+    folds = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(TABLE)[0], pioneer)
+    assert "map_wall_depth" not in folds["bag1"] and "odom_yaw_rate_bias" in folds["bag1"]
+
+
+def test_calibration_table_shows_each_bag_alone_and_held_out():
+    folds = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(TABLE)[0])
+    lines = D.calibration_table(TABLE, folds).splitlines()
+    assert len(lines) == 1 + 2 * 3
+    assert lines[1].split()[:2] == ["bag1", "alone"] and lines[2].split()[0] == "held-out"
+    assert "(from bag2, bag3)" in lines[2]
+    assert "yaw scale" in lines[0] and "wall depth" in lines[0]
+    assert f"{TABLE['bag1']['odom_yaw_rate_scale']:.4f}" in lines[1]
+    assert f"{folds['bag1']['odom_yaw_rate_scale']:.4f}" in lines[2]
 
 
 def test_heldout_needs_two_bags():

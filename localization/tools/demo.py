@@ -21,15 +21,19 @@
    both off (``align_odometry`` and ``deskew`` false: no time alignment at all). ``--skip-fast``.
 
 5. Held-out real-bag figures: each RSS 2022 bag replayed with the odometry and lidar calibration of
-   the OTHER two bags (``localization-calibrate`` on each of them, the mean of its
-   ``odom_time_offset``, ``odom_speed_scale``, ``lidar_scale_to_map_scale`` and ``map_wall_depth``; everything else
-   from ``real_params.yaml``), next to the all-bags figures of step 2 (``real_params.yaml``, which
-   was calibrated on all three, the held-out bag included). The error is against the yardstick
-   (``localization.eval.reference``); the held-out table is the honest one. ``--only heldout``.
+   the OTHER two bags (``localization-calibrate`` on each of them, the mean of every value
+   ``real_params.yaml`` takes from calibration: ``HELDOUT_KEYS``, i.e. the odometry time offset,
+   speed scale, yaw-rate scale and bias, ``laser_offset_x``, the range scale and the wall depth;
+   everything else from ``real_params.yaml``), next to the all-bags figures of step 2
+   (``real_params.yaml``, calibrated on all three, the held-out bag included). The error is against
+   the yardstick (``localization.eval.reference``); the held-out table is the honest one.
+   ``--only heldout``.
 6. The Pioneer 3-DX bags (``config/pioneer_params.yaml``, map lgfloor; trace0 from its start pose,
    trace1 and lgfloor2 globally; lgfloor2's odometry from TF and its scans stamped at the first
    beam): time to converge, largest jump, recoveries, scan–map agreement where the yardstick is
-   confident and the share of scans the localizer said disagree with the map. ``--only pioneer``.
+   confident and the share of scans the localizer said disagree with the map; with
+   ``pioneer_params.yaml`` (its odometry calibrated on trace0) and held out as in step 5 (the laser
+   mount from the bags' TF and the wall depth stay the file's: ``HELDOUT_PINNED``). ``--only pioneer``.
 
 ``--motion-sweep`` adds a table of the real bags' scan-map agreement as the motion-noise
 parameters of ``real_params.yaml`` are scaled (how much the filter should trust the odometry).
@@ -53,7 +57,15 @@ import numpy as np
 
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
-from localization.eval.datasets import PIONEER_BAGS, REAL_BAGS, REPORT_TRIALS, SIM_TRIALS, real_bag_path, sim_bag
+from localization.eval.datasets import (
+    PIONEER_BAGS,
+    REAL_BAGS,
+    REPORT_TRIALS,
+    SIM_TRIALS,
+    real_bag,
+    real_bag_path,
+    sim_bag,
+)
 from localization.sim.perturb import STANDARD_PERTURBATION
 from localization.tools import args as args_
 
@@ -192,16 +204,30 @@ def real_table(results: list) -> str:
 # Held-out calibration (step 5)
 # --------------------------------------------------------------------------------------------
 
-#: calibration result name -> parameter, the values a held-out fold takes from the other bags' calibration
+#: calibration result name -> parameter: the values a held-out fold takes from the other bags' calibration
+#: (every value a robot's parameter file takes from ``localization-calibrate``)
 HELDOUT_KEYS = {"odom_time_offset_s": "odom_time_offset", "odom_speed_scale": "odom_speed_scale",
-                "lidar_scale_to_map_scale": "lidar_scale_to_map_scale", "map_wall_depth": "map_wall_depth"}
+                "odom_yaw_rate_scale": "odom_yaw_rate_scale", "odom_yaw_rate_bias": "odom_yaw_rate_bias",
+                "laser_offset_x": "laser_offset_x", "lidar_scale_to_map_scale": "lidar_scale_to_map_scale",
+                "map_wall_depth": "map_wall_depth"}
+#: parameter file -> the HELDOUT_KEYS its robot does not take from calibration: the Pioneer's laser mount comes
+#: from its bags' TF and its wall depth is pinned at 0 (pioneer_params.yaml says why)
+HELDOUT_PINNED = {"pioneer_params.yaml": ("laser_offset_x", "map_wall_depth")}
 
 
-def heldout_folds(bags, calibrate) -> dict:
+def heldout_keys(params_file: str) -> dict:
+    """The HELDOUT_KEYS a held-out fold of a robot with this parameter file takes from calibration."""
+    pinned = HELDOUT_PINNED.get(Path(params_file).name, ())
+    return {k: p for k, p in HELDOUT_KEYS.items() if p not in pinned}
+
+
+def heldout_folds(bags, calibrate, keys: dict | None = None) -> dict:
     """For each bag k of ``bags``: the parameter overrides calibrated WITHOUT it, the mean over the
-    other bags j ≠ k of ``calibrate(j)[key]`` for each key of ``HELDOUT_KEYS``, under its parameter
-    name; and ``"calibrated_on"``: those other bags. ``calibrate(name)`` -> dict of calibrated values
-    (``CalibrationResult.values``); it is called once per bag, only for bags some fold uses."""
+    other bags j ≠ k of ``calibrate(j)[key]`` for each key of ``keys`` (default ``HELDOUT_KEYS``), under
+    its parameter name; and ``"calibrated_on"``: those other bags. ``calibrate(name)`` -> dict of
+    calibrated values (``CalibrationResult.values``); it is called once per bag, only for bags some fold
+    uses."""
+    keys = HELDOUT_KEYS if keys is None else keys
     bags = list(bags)
     if len(bags) < 2:
         raise ValueError(f"held-out folds need at least two bags, got {bags}")
@@ -213,25 +239,26 @@ def heldout_folds(bags, calibrate) -> dict:
             if b not in values:
                 values[b] = calibrate(b)
         fold = {param: float(sum(float(values[b][key]) for b in others) / len(others))
-                for key, param in HELDOUT_KEYS.items()}
+                for key, param in keys.items()}
         fold["calibrated_on"] = others
         folds[k] = fold
     return folds
 
 
 def _calibrate_job(name: str) -> dict:
-    """``localization-calibrate`` on a real RSS bag (in a worker process): the mount guess, stamp
-    convention and start pose as for its replay; returns {name, values} or {name, error}."""
+    """``localization-calibrate`` on a real bag (RSS 2022 or Pioneer; in a worker process): the mount
+    guess, stamp convention, odometry source and start pose as for its replay; returns {name, values}
+    or {name, error}."""
     from localization.bags import BagError
     from localization.core.occupancy_map import load_map
     from localization.eval.calibration import CalibrationError, calibrate_bag
-    rb = REAL_BAGS[name]
+    rb = real_bag(name)
     params = Parameters.from_yaml(config_dir() / rb.params)
     try:
         res = calibrate_bag(real_bag_path(name), load_map(rb.map), rb.scan_topic, rb.odom_topic, rb.start,
                             (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
-                            scan_stamp=params.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
-                            odom_frame=params.odom_frame, base_frame=params.base_frame)
+                            scan_stamp=rb.scan_stamp, scan_stamp_offset=params.scan_stamp_offset,
+                            odom_frame=rb.odom_frame, base_frame=rb.base_frame)
     except (CalibrationError, BagError) as exc:
         return {"name": name, "error": str(exc)}
     return {"name": name, "values": {k: float(v) for k, v in res.values.items()}}
@@ -251,18 +278,25 @@ def calibrate_all(names, workers: int) -> dict:
     return {r["name"]: r["values"] for r in out}
 
 
-def calibration_table(values: dict, folds: dict) -> str:
-    lines = [f"{'bag':<6} {'calibrated alone':>50}   {'held-out fold (mean of the others)':>50}",
-             f"{'':<6} {'time offset':>12} {'speed scale':>12} {'range scale':>12} {'wall depth':>11}   "
-             f"{'time offset':>12} {'speed scale':>12} {'range scale':>12} {'wall depth':>11}"]
+#: parameter -> (column title, format) of the calibration table
+CALIBRATION_COLUMNS = {"odom_time_offset": ("time offset", "{:+.4f}s"), "odom_speed_scale": ("speed scale", "{:.4f}"),
+                       "odom_yaw_rate_scale": ("yaw scale", "{:.4f}"), "odom_yaw_rate_bias": ("yaw bias", "{:+.4f}"),
+                       "laser_offset_x": ("laser x", "{:.3f}m"), "lidar_scale_to_map_scale": ("range scale", "{:.4f}"),
+                       "map_wall_depth": ("wall depth", "{:.3f}m")}
+
+
+def calibration_table(values: dict, folds: dict, keys: dict | None = None) -> str:
+    """Two rows per bag: its own calibration, and its held-out fold (the mean over the other bags)."""
+    keys = HELDOUT_KEYS if keys is None else keys
+    params = list(keys.values())
+    lines = [f"{'bag':<9} {'':<9} " + " ".join(f"{CALIBRATION_COLUMNS[p][0]:>12}" for p in params)]
     for name, fold in folds.items():
         v = values.get(name)
-        own = (f"{v['odom_time_offset_s']:>+11.4f}s {v['odom_speed_scale']:>12.4f} "
-               f"{v['lidar_scale_to_map_scale']:>12.4f} {100 * v['map_wall_depth']:>9.2f}cm" if v
-               else f"{'(not calibrated)':>50}")
-        lines.append(f"{name:<6} {own}   {fold['odom_time_offset']:>+11.4f}s {fold['odom_speed_scale']:>12.4f} "
-                     f"{fold['lidar_scale_to_map_scale']:>12.4f} {100 * fold['map_wall_depth']:>9.2f}cm   "
-                     f"(from {', '.join(fold['calibrated_on'])})")
+        own = (" ".join(f"{CALIBRATION_COLUMNS[p][1].format(float(v[k])):>12}" for k, p in keys.items()) if v
+               else "(not calibrated)")
+        held = " ".join(f"{CALIBRATION_COLUMNS[p][1].format(float(fold[p])):>12}" for p in params)
+        lines.append(f"{name:<9} {'alone':<9} {own}")
+        lines.append(f"{'':<9} {'held-out':<9} {held}   (from {', '.join(fold['calibrated_on'])})")
     return "\n".join(lines)
 
 
@@ -426,7 +460,7 @@ def main(argv=None) -> int:
     if args.only is not None:  # one part alone
         args.skip_sim = True
         args.skip_real = args.only != "heldout"
-        args.skip_heldout = args.only != "heldout"
+        args.skip_heldout = False  # the part's own held-out replays (RSS or Pioneer)
         args.skip_pioneer = args.only != "pioneer"
         args.motion_sweep = None
     overrides = {"random_seed": args.seed, **dict(args.overrides)}
@@ -444,8 +478,18 @@ def main(argv=None) -> int:
         return 1
     sim_params, real_params = config_dir() / "params.yaml", config_dir() / "real_params.yaml"
 
-    sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs = [], [], [], [], []
-    folds, calibrated = {}, {}
+    sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs, pioneer_heldout_jobs = [], [], [], [], [], []
+    folds, calibrated, pioneer_folds = {}, {}, {}
+    heldout_bags = ([] if args.skip_heldout else
+                    [*([] if args.skip_real else REAL_BAGS), *([] if args.skip_pioneer else PIONEER_BAGS)])
+    if heldout_bags:
+        print(f"calibrating {', '.join(heldout_bags)} (localization-calibrate, each once) for the held-out folds ...",
+              file=sys.stderr)
+        try:
+            calibrated = calibrate_all(heldout_bags, args.jobs)
+        except RuntimeError as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return 1
     if not args.skip_sim:
         names = list(REPORT_TRIALS) + (["loop_noise0.3_biased"] if args.loop else [])
         runs = {name: (name, {}, {}) for name in names}
@@ -472,14 +516,7 @@ def main(argv=None) -> int:
                               "overrides": overrides, "initial_pose": rb.start, "scan_topic": rb.scan_topic,
                               "odom_topic": rb.odom_topic, "out": str(out / name)})
         if not args.skip_heldout:
-            print(f"calibrating {', '.join(REAL_BAGS)} (localization-calibrate, each once) for the held-out folds ...",
-                  file=sys.stderr)
-            try:
-                calibrated = calibrate_all(REAL_BAGS, args.jobs)
-            except RuntimeError as exc:
-                print(f"{PROG}: error: {exc}", file=sys.stderr)
-                return 1
-            folds = heldout_folds(REAL_BAGS, calibrated.__getitem__)
+            folds = heldout_folds(REAL_BAGS, calibrated.__getitem__, heldout_keys(real_params))
             for job in real_jobs:
                 fold = {k: v for k, v in folds[job["label"]].items() if k != "calibrated_on"}
                 heldout_jobs.append({**job, "overrides": {**overrides, **fold},
@@ -501,18 +538,26 @@ def main(argv=None) -> int:
                                  "overrides": {**overrides, "scan_stamp": rb.scan_stamp}, "initial_pose": rb.start,
                                  "force_global": rb.start is None, "scan_topic": rb.scan_topic,
                                  "odom_topic": rb.odom_topic, "out": str(out / name), "pioneer": True})
+        if not args.skip_heldout:
+            keys = heldout_keys(PIONEER_BAGS["trace0"].params)
+            pioneer_folds = heldout_folds(PIONEER_BAGS, calibrated.__getitem__, keys)
+            for job in pioneer_jobs:
+                fold = {k: v for k, v in pioneer_folds[job["label"]].items() if k != "calibrated_on"}
+                pioneer_heldout_jobs.append({**job, "overrides": {**job["overrides"], **fold},
+                                             "out": str(out / "heldout" / job["label"]), "plots": False})
 
     t0 = time.perf_counter()
     print(f"replaying {len(sim_jobs)} simulated trials, {len(real_jobs)} real bags, {len(heldout_jobs)} held-out "
-          f"replays, {len(pioneer_jobs)} Pioneer bags ({len(sweep_jobs)} sweep runs) with {args.jobs} worker(s) ...",
+          f"replays, {len(pioneer_jobs)} Pioneer bags and {len(pioneer_heldout_jobs)} held out "
+          f"({len(sweep_jobs)} sweep runs) with {args.jobs} worker(s) ...",
           file=sys.stderr)
-    groups = [sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs]
+    groups = [sim_jobs, real_jobs, sweep_jobs, heldout_jobs, pioneer_jobs, pioneer_heldout_jobs]
     results = _run_all([j for g in groups for j in g], args.jobs)
     split, k = [], 0
     for g in groups:
         split.append(results[k:k + len(g)])
         k += len(g)
-    sim_all, real_res, sweep_res, heldout_res, pioneer_res = split
+    sim_all, real_res, sweep_res, heldout_res, pioneer_res, pioneer_heldout_res = split
     fast_res = [r for r in sim_all if r["job"].get("fast")]
     sim_res = [r for r in sim_all if not r["job"].get("fast")]
 
@@ -553,15 +598,14 @@ def main(argv=None) -> int:
                   + f" {_f(sum(ok) / len(ok) if ok else None):>6}")
     if heldout_res:
         print("\nCalibration of each RSS 2022 bag (localization-calibrate) and the held-out folds: each bag's "
-              "odom_time_offset, odom_speed_scale, lidar_scale_to_map_scale, map_wall_depth = the mean over the "
-              "other two")
-        print(calibration_table(calibrated, folds))
+              "calibrated values = the mean over the other two")
+        print(calibration_table(calibrated, folds, heldout_keys(real_params)))
         print(f"\nRSS 2022 bags vs the yardstick (scan-to-map reference track), error in metres; {n} particles, "
               f"seed {args.seed}, from the approximate start poses")
         print("all-bags parameters (config/real_params.yaml, calibrated on all three bags, this one included):")
         print(yardstick_table(real_res))
-        print("HELD-OUT (odometry timing, speed scale, range scale and wall depth calibrated on the other two bags "
-              "only; the rest from real_params.yaml):")
+        print("HELD-OUT (odometry timing, speed scale, yaw-rate scale and bias, laser x, range scale and wall depth "
+              "calibrated on the other two bags only; the rest from real_params.yaml):")
         print(yardstick_table(heldout_res))
     if pioneer_res:
         print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "
@@ -578,13 +622,21 @@ def main(argv=None) -> int:
               "after which Localizer.status said the scans disagree with the map; health< = share of sensor "
               f"updates with health below health_lost_floor; end agr = median scan-map agreement over the last "
               f"{END_WINDOW_S:.0f} s (where the yardstick may not be confident)")
+        print("config/pioneer_params.yaml (its odometry calibrated on trace0: training figures for trace0):")
         print(pioneer_table(pioneer_res))
+    if pioneer_heldout_res:
+        print("HELD-OUT (odometry timing, speed scale, yaw-rate scale and bias and range scale calibrated on the other "
+              "two Pioneer bags only; the rest from pioneer_params.yaml):")
+        print(pioneer_table(pioneer_heldout_res))
+        print("\nCalibration of each Pioneer bag (localization-calibrate) and the held-out folds (the mean over the "
+              "other two):")
+        print(calibration_table(calibrated, pioneer_folds, heldout_keys(PIONEER_BAGS["trace0"].params)))
     out.mkdir(parents=True, exist_ok=True)
     summary = {r["job"]["label"] + (f"@{r['job']['scale']}" if "scale" in r["job"] else "")
-               + ("@heldout" if r["job"] in heldout_jobs else ""):
+               + ("@heldout" if r["job"] in heldout_jobs or r["job"] in pioneer_heldout_jobs else ""):
                r.get("metrics", {"error": r.get("error")}) for r in results}
-    if folds:
-        summary["heldout_folds"] = folds
+    if folds or pioneer_folds:
+        summary["heldout_folds"] = {**folds, **pioneer_folds}
         summary["calibration"] = calibrated
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"\nplots and metrics: {out}/<trial or bag>/(trajectory.png, error.png, metrics.json, poses.csv); "
