@@ -238,16 +238,22 @@ class MotionModel:
         return np.sqrt(np.diag(self.noise_covariance(odometry)))
 
     # ------------------------------------------------------------------ moving particles
-    def evaluate(self, particles, odometry, out=None) -> np.ndarray:
+    def evaluate(self, particles, odometry, out=None, slip: float = 0.0, slip_var: float = 0.0) -> np.ndarray:
         """Move particles (N, 3) by odometry [dx, dy, dθ] (robot frame); returns (N, 3).
 
-        ``out`` may be ``particles`` itself to update in place."""
+        ``slip`` (m) and ``slip_var`` (m²): the mean and variance of how much farther forward (along the
+        heading at the piece's start) the robot went than the odometry says, a skid or wheel spin
+        (``odometry.OdometryBuffer``): added to dx and to Σ(u)'s along-track variance. ``deterministic``
+        ignores them. ``out`` may be ``particles`` itself to update in place."""
         particles = np.asarray(particles, dtype=float)
         u, vx, vy, w = self._piece(odometry)
         n = particles.shape[0]
         noise, factor = _NO_NOISE, _NO_FACTOR
         if not self.deterministic:
             cov = self._covariance(vx, vy, w)
+            if slip or slip_var:  # a skid (or spin) along the robot's heading at the piece's start
+                u[0] += slip
+                cov = cov + np.diag([max(slip_var, 0.0), 0.0, 0.0])
             if cov.any():
                 vals, vecs = np.linalg.eigh(cov)
                 factor = vecs * np.sqrt(np.clip(vals, 0.0, None))  # factor @ factor.T == cov

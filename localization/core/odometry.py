@@ -17,6 +17,21 @@ extrapolates a scan that waited ``scan_max_wait`` for odometry in vain, and says
 The motion between any two times is the composition of the constant-twist arcs
 (``geometry.integrate_twist``) of the pieces between them (``segments``, ``motion``); ``twist_at``
 is the twist holding at a time (the deskew of a sweep uses it).
+
+Slip and skid. Wheels that lock under braking report a stop while the robot slides on; wheels that
+spin report speed the robot does not have. Neither can follow a speed change faster than the tyres'
+grip allows (``max_acceleration`` a, about μ·g; 0: off). The buffer follows the speed a grip-limited
+robot could have::
+
+    v*_k = clip(vx'_k, v*_{k−1} − a·Δt_k, v*_{k−1} + a·Δt_k),      slip_k = v*_k − vx'_k   [m/s]
+
+Over a slip episode (consecutive periods with slip ≠ 0) the robot may have gone up to
+D = ∫ slip dt farther forward (a skid; backward: wheel spin) than the odometry says; how much of it
+is unknown (the tyres' real grip), one unknown for the whole episode. ``slip_segments`` gives each
+piece its share: a mean of half its slip distance and a variance of ¼·(A_end² − A_start²), with
+A = ∫ |slip| dt since the episode began, so that however the episode is cut into pieces the robot
+is taken to have gone D/2 ± |D|/2 farther at its end (independent per-piece noise would shrink the
+spread as the pieces get finer).
 """
 from __future__ import annotations
 
@@ -46,14 +61,18 @@ class OdometryBuffer:
     what is no longer needed. Not thread safe by itself: the localizer guards it with a lock."""
 
     def __init__(self, time_offset: float = 0.0, speed_scale: float = 1.0, yaw_rate_scale: float = 1.0,
-                 yaw_rate_bias: float = 0.0, extrapolation: float = 0.1):
+                 yaw_rate_bias: float = 0.0, extrapolation: float = 0.1, max_acceleration: float = 0.0):
         self.extrapolation = float(extrapolation)  # s: the last twist holds this long past the newest stamp
+        self.max_acceleration = float(max_acceleration)  # m/s²: grip limit of a speed change (0: no slip)
         self.time_offset = float(time_offset)  # s
         self.speed_scale = float(speed_scale)
         self.yaw_rate_scale = float(yaw_rate_scale)
         self.yaw_rate_bias = float(yaw_rate_bias)  # rad/s
         self._t: list[float] = []  # corrected stamps t'_k (end of each period)
         self._twist: list[tuple[float, float, float]] = []  # corrected (vx, vy, ωz) over (t'_{k−1}, t'_k]
+        self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
+        self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
+        self._grip_speed = 0.0  # m/s: v* of the newest period
 
     def __len__(self) -> int:
         return len(self._t)
@@ -71,14 +90,28 @@ class OdometryBuffer:
         """Append a message; returns its corrected time t'."""
         t = float(twist.stamp) + self.time_offset
         s = self.speed_scale
+        vx = s * float(twist.vx)
+        slip, slipped = 0.0, 0.0
+        if self._t and self.max_acceleration > 0.0:  # the first period has no known start: no slip
+            dv = self.max_acceleration * (t - self._t[-1])
+            grip = min(max(vx, self._grip_speed - dv), self._grip_speed + dv)
+            slip, self._grip_speed = grip - vx, grip
+            if slip != 0.0 and self._slip[-1] != 0.0:  # the episode goes on
+                slipped = self._slipped[-1] + abs(self._slip[-1]) * (self._t[-1] - self._t[-2])
+        else:
+            self._grip_speed = vx
         self._t.append(t)
-        self._twist.append((s * float(twist.vx), s * float(twist.vy),
-                            self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
+        self._twist.append((vx, s * float(twist.vy), self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
+        self._slip.append(slip)
+        self._slipped.append(slipped)
         return t
 
     def reset(self) -> None:
         self._t.clear()
         self._twist.clear()
+        self._slip.clear()
+        self._slipped.clear()
+        self._grip_speed = 0.0
 
     def trim(self, before: float, keep: int = 2) -> None:
         """Forget messages whose period ended before ``before`` (keeping the boundary that starts
@@ -88,6 +121,8 @@ class OdometryBuffer:
         if n > 0:
             del self._t[:n]
             del self._twist[:n]
+            del self._slip[:n]
+            del self._slipped[:n]
 
     def twist_at(self, t: float) -> np.ndarray:
         """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end, the oldest just
@@ -101,8 +136,15 @@ class OdometryBuffer:
         """Pieces of constant twist covering [t0, t1] (t0 ≤ t1), cut at message stamps:
         durations (P,) and twists (P, 3). The oldest message's period has no known start: its twist
         holds for ``extrapolation`` before its stamp, as the newest one's holds after; beyond, the twist is zero."""
+        dts, twists, _ = self.slip_segments(t0, t1)
+        return dts, twists
+
+    def slip_segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``segments`` and each piece's slip (P, 2): the mean (m) and the variance (m²) of how much
+        farther forward the robot went than its twist says (the module docstring; 0 where the twist is
+        extrapolated or unknown)."""
         if not t1 > t0:
-            return np.zeros(0), np.zeros((0, 3))
+            return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2))
         stamps = np.asarray(self._t, dtype=float)
         cuts = np.concatenate([[stamps[0] - self.extrapolation], stamps, [stamps[-1] + self.extrapolation]]) \
             if stamps.size else stamps
@@ -110,20 +152,32 @@ class OdometryBuffer:
         edges = np.concatenate([[t0], inner, [t1]])
         dts = np.diff(edges)
         twists = np.zeros((dts.size, 3))
+        slips = np.zeros((dts.size, 2))
         if stamps.size:
             mid = 0.5 * (edges[:-1] + edges[1:])
             k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
             known = (mid > stamps[0] - self.extrapolation) & (mid < stamps[-1] + self.extrapolation)
             twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
+            inside = np.flatnonzero(known & (mid > stamps[0]) & (mid <= stamps[-1]))  # periods the odometry reported
+            if inside.size and self.max_acceleration > 0.0:
+                ki = k[inside]
+                speed = np.asarray(self._slip, dtype=float)[ki]  # m/s
+                start = np.asarray(self._slipped, dtype=float)[ki]  # m: A at the period's start
+                a0 = start + np.abs(speed) * (edges[inside] - stamps[ki - 1])  # A at the piece's start
+                a1 = a0 + np.abs(speed) * dts[inside]
+                slips[inside, 0] = 0.5 * speed * dts[inside]
+                slips[inside, 1] = 0.25 * (a1 * a1 - a0 * a0)
         keep = dts > 0
-        return dts[keep], twists[keep]
+        return dts[keep], twists[keep], slips[keep]
 
     def travel(self, t0: float, t1: float) -> tuple[float, float]:
-        """Path length (m) and total rotation (rad) between t0 and t1 (t0 ≤ t1): Σ |v|·dt, Σ |ω|·dt."""
-        dts, twists = self.segments(t0, t1)
+        """Path length (m) and total rotation (rad) between t0 and t1 (t0 ≤ t1): Σ |v|·dt plus twice
+        the slip's mean (a skid travels), Σ |ω|·dt."""
+        dts, twists, slips = self.slip_segments(t0, t1)
         if not dts.size:
             return 0.0, 0.0
-        return float(np.dot(dts, np.hypot(twists[:, 0], twists[:, 1]))), float(np.dot(dts, np.abs(twists[:, 2])))
+        return (float(np.dot(dts, np.hypot(twists[:, 0], twists[:, 1])) + 2.0 * np.abs(slips[:, 0]).sum()),
+                float(np.dot(dts, np.abs(twists[:, 2]))))
 
     def motion(self, t0: float, t1: float) -> np.ndarray:
         """Robot-frame displacement [dx, dy, dθ] from time t0 to t1 (expressed in the robot frame

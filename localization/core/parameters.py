@@ -96,6 +96,11 @@ PARAMETERS = [
           "reference instead of moving the particles", _positive, "> 0"),
     Param("odom_max_speed", 20.0, "odometry faster than this (m/s) is a broken message and ignored", _positive, "> 0"),
     Param("odom_max_yaw_rate", 20.0, "odometry turning faster than this (rad/s) is ignored", _positive, "> 0"),
+    Param("odom_max_acceleration", 0.0, "the fastest change of forward speed (m/s^2) the base's tyres can make "
+          "(their grip, about mu x 9.81); odometry changing speed faster slips or skids (locked wheels report a "
+          "stop while the robot slides on): the particles spread along track over the difference from the speed "
+          "changing at this rate (mean half of it, std half of it) and the update policy counts it as travel "
+          "(0: odometry never slips)", _non_negative, ">= 0"),
     Param("max_impossible_scans", 3, "this many scans in a row giving every particle likelihood 0 re-spread the "
           "particles over the free space", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
     Param("random_seed", -1, "seed of every random draw; -1 = nondeterministic", lambda v: isinstance(v, int),

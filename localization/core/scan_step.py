@@ -103,10 +103,11 @@ class ScanStep:
             if t < t_from:
                 for cloud in clouds:
                     cloud.shift(inverse(self.timeline.motion(t, t_from)))
-            dts, twists = self.timeline.segments(t_from, t)
-            for delta in integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts):
+            dts, twists, slips = self.timeline.slip_segments(t_from, t)
+            for delta, (slip, slip_var) in zip(integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts),
+                                               slips):
                 for cloud in clouds:
-                    cloud.motion_update(delta)
+                    cloud.motion_update(delta, slip, slip_var)
         self.t_filter = t
 
     def run(self, scan: ScanData, t_s: float, occupancy_map: OccupancyMap, global_mode: bool,

@@ -54,6 +54,7 @@ class OdometryLimits:
     max_yaw_rate: float = 20.0  # rad/s: odom_max_yaw_rate
     extrapolation: float = 0.5  # s: scan_max_wait (how far a late scan may be carried past the odometry)
     keeps_sideways: bool = True  # False (a differential base): a reported sideways speed vy is taken as 0
+    max_acceleration: float = 0.0  # m/s²: odom_max_acceleration (a faster speed change is slip; 0: none)
 
     @classmethod
     def from_parameters(cls, p) -> "OdometryLimits":
@@ -61,7 +62,8 @@ class OdometryLimits:
         return cls(time_offset=p.odom_time_offset, speed_scale=p.odom_speed_scale,
                    yaw_rate_scale=p.odom_yaw_rate_scale, yaw_rate_bias=p.odom_yaw_rate_bias, max_gap=p.odom_max_gap,
                    max_speed=p.odom_max_speed, max_yaw_rate=p.odom_max_yaw_rate, extrapolation=p.scan_max_wait,
-                   keeps_sideways=robot_model(p.robot_model_type).keeps_sideways)
+                   keeps_sideways=robot_model(p.robot_model_type).keeps_sideways,
+                   max_acceleration=p.odom_max_acceleration)
 
 
     def carry(self, last: PoseEstimate | None, twist: TwistData) -> PoseEstimate | None:
@@ -91,7 +93,7 @@ class OdometryTimeline:
         self.limits = limits if limits is not None else OdometryLimits()
         lim = self.limits
         self._buffer = OdometryBuffer(lim.time_offset, lim.speed_scale, lim.yaw_rate_scale, lim.yaw_rate_bias,
-                                      lim.extrapolation)
+                                      lim.extrapolation, lim.max_acceleration)
         self._last_stamp: float | None = None  # odometry clock: the newest accepted message's own stamp
         self._before_jump: float | None = None  # the stamp before a jump (was it one bad stamp?)
         self.anchor: PoseEstimate | None = None  # the latest corrected estimate (scan clock)
@@ -161,6 +163,10 @@ class OdometryTimeline:
     def segments(self, t0: float, t1: float):
         """Constant-twist pieces (durations (P,), twists (P, 3)) covering [t0, t1]."""
         return self._buffer.segments(t0, t1)
+
+    def slip_segments(self, t0: float, t1: float):
+        """``segments`` and each piece's slip (P, 2): mean (m) and variance (m²) (``odometry.OdometryBuffer``)."""
+        return self._buffer.slip_segments(t0, t1)
 
     def motion(self, t0: float, t1: float) -> np.ndarray:
         return self._buffer.motion(t0, t1)

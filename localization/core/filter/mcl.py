@@ -109,9 +109,10 @@ class MonteCarloLocalizer:
         self.initialized = True
 
     # ------------------------------------------------------------------ updates
-    def motion_update(self, odometry) -> None:
-        """Move every particle by the robot-frame odometry delta [dx, dy, dθ]."""
-        self.motion_model.evaluate(self.particles, odometry, out=self.particles)
+    def motion_update(self, odometry, slip: float = 0.0, slip_var: float = 0.0) -> None:
+        """Move every particle by the robot-frame odometry delta [dx, dy, dθ] (``slip``, ``slip_var``: the
+        mean (m) and variance (m²) of how much farther forward the robot went; ``MotionModel.evaluate``)."""
+        self.motion_model.evaluate(self.particles, odometry, out=self.particles, slip=slip, slip_var=slip_var)
 
     def shift(self, delta) -> None:
         """Move every particle by the robot-frame delta exactly (no noise), e.g. back in time."""
