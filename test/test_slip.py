@@ -78,6 +78,18 @@ def test_speed_changes_within_the_grip_do_not_slip_and_wheel_spin_slips_backward
     assert mean == pytest.approx(-0.5 * 2.0 ** 2 / (2 * 5.0), rel=0.1) and var > 0
 
 
+def test_a_history_restarted_after_a_clock_jump_does_not_spin_from_its_marker():
+    from localization.core.timeline import OdometryLimits, OdometryTimeline
+    tl = OdometryTimeline(OdometryLimits(max_acceleration=5.0))
+    for t in np.arange(0.0, 1.0, 1.0 / RATE):
+        assert tl.add(TwistData(float(t), 2.0, 0.0, 0.0)).accepted
+    tl.add(TwistData(100.0, 2.0, 0.0, 0.0))  # the clock jumps (a bag loop): refused, the history restarts ...
+    for t in np.arange(100.0 + 1.0 / RATE, 101.0, 1.0 / RATE):
+        assert tl.add(TwistData(float(t), 2.0, 0.0, 0.0)).accepted
+    _, _, slips = tl.slip_segments(100.0, 101.0)  # ... from a marker that is not a stop: still 2 m/s, no slip
+    assert np.abs(slips).max() == 0.0
+
+
 def test_the_motion_model_moves_the_slip_mean_along_the_heading_with_its_variance():
     mm = MotionModel(rng=1, a_trans=0.0, a_lateral=0.0, a_rot=0.0, a_rot_to_trans=0.0, a_trans_to_rot=0.0,
                      floor_xy=0.0, floor_theta=0.0)

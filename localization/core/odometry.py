@@ -73,6 +73,7 @@ class OdometryBuffer:
         self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
         self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
         self._grip_speed = 0.0  # m/s: v* of the newest period
+        self._after_boundary = False  # the newest message is a history's start marker (no measured speed)
 
     def __len__(self) -> int:
         return len(self._t)
@@ -86,13 +87,14 @@ class OdometryBuffer:
     def oldest(self) -> float | None:
         return self._t[0] if self._t else None
 
-    def add(self, twist: TwistData) -> float:
-        """Append a message; returns its corrected time t'."""
+    def add(self, twist: TwistData, boundary: bool = False) -> float:
+        """Append a message; returns its corrected time t'. ``boundary``: a marker where a new history
+        starts (after a clock jump), not a measured twist: the next message's speed is not judged against it."""
         t = float(twist.stamp) + self.time_offset
         s = self.speed_scale
         vx = s * float(twist.vx)
         slip, slipped = 0.0, 0.0
-        if self._t and self.max_acceleration > 0.0:  # the first period has no known start: no slip
+        if self._t and self.max_acceleration > 0.0 and not self._after_boundary:  # else no known speed before
             dv = self.max_acceleration * (t - self._t[-1])
             grip = min(max(vx, self._grip_speed - dv), self._grip_speed + dv)
             slip, self._grip_speed = grip - vx, grip
@@ -104,6 +106,7 @@ class OdometryBuffer:
         self._twist.append((vx, s * float(twist.vy), self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
         self._slip.append(slip)
         self._slipped.append(slipped)
+        self._after_boundary = boundary
         return t
 
     def reset(self) -> None:

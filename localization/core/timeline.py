@@ -127,7 +127,7 @@ class OdometryTimeline:
             carried = None if self.empty or self.anchor is None else self.pose_at(self.latest)
             self._buffer.reset()
             if last is not None:
-                restart = self._buffer.add(TwistData(last, 0.0, 0.0, 0.0))
+                restart = self._buffer.add(TwistData(last, 0.0, 0.0, 0.0), boundary=True)
             if carried is not None:  # the pose before the jump holds at the new history's start
                 self.anchor = PoseEstimate(stamp=restart, pose=carried.pose, covariance=carried.covariance)
         if not lim.keeps_sideways and twist.vy != 0.0:  # a differential base cannot move sideways
