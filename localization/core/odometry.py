@@ -72,7 +72,6 @@ class OdometryBuffer:
         self._twist: list[tuple[float, float, float]] = []  # corrected (vx, vy, ωz) over (t'_{k−1}, t'_k]
         self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
         self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
-        self._grip_speed = 0.0  # m/s: v* of the newest period
         self._after_boundary = False  # the newest message is a history's start marker (no measured speed)
 
     def __len__(self) -> int:
@@ -96,12 +95,10 @@ class OdometryBuffer:
         slip, slipped = 0.0, 0.0
         if self._t and self.max_acceleration > 0.0 and not self._after_boundary:  # else no known speed before
             dv = self.max_acceleration * (t - self._t[-1])
-            grip = min(max(vx, self._grip_speed - dv), self._grip_speed + dv)
-            slip, self._grip_speed = grip - vx, grip
+            before = self._twist[-1][0] + self._slip[-1]  # v* of the newest period
+            slip = min(max(vx, before - dv), before + dv) - vx
             if slip != 0.0 and self._slip[-1] != 0.0:  # the episode goes on
                 slipped = self._slipped[-1] + abs(self._slip[-1]) * (self._t[-1] - self._t[-2])
-        else:
-            self._grip_speed = vx
         self._t.append(t)
         self._twist.append((vx, s * float(twist.vy), self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
         self._slip.append(slip)
@@ -114,7 +111,6 @@ class OdometryBuffer:
         self._twist.clear()
         self._slip.clear()
         self._slipped.clear()
-        self._grip_speed = 0.0
 
     def trim(self, before: float, keep: int = 2) -> None:
         """Forget messages whose period ended before ``before`` (keeping the boundary that starts
@@ -161,8 +157,9 @@ class OdometryBuffer:
             k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
             known = (mid > stamps[0] - self.extrapolation) & (mid < stamps[-1] + self.extrapolation)
             twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
-            inside = np.flatnonzero(known & (mid > stamps[0]) & (mid <= stamps[-1]))  # periods the odometry reported
-            if inside.size and self.max_acceleration > 0.0:
+            inside = (np.flatnonzero(known & (mid > stamps[0]) & (mid <= stamps[-1]))  # periods the odometry reported
+                      if self.max_acceleration > 0.0 else ())
+            if len(inside):
                 ki = k[inside]
                 speed = np.asarray(self._slip, dtype=float)[ki]  # m/s
                 start = np.asarray(self._slipped, dtype=float)[ki]  # m: A at the period's start

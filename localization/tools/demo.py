@@ -57,6 +57,7 @@ import numpy as np
 
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
+from localization.eval.calibration import PARAM_NAMES as CALIBRATED_PARAMS
 from localization.eval.datasets import (
     PIONEER_BAGS,
     REAL_BAGS,
@@ -205,11 +206,9 @@ def real_table(results: list) -> str:
 # --------------------------------------------------------------------------------------------
 
 #: calibration result name -> parameter: the values a held-out fold takes from the other bags' calibration
-#: (every value a robot's parameter file takes from ``localization-calibrate``)
-HELDOUT_KEYS = {"odom_time_offset_s": "odom_time_offset", "odom_speed_scale": "odom_speed_scale",
-                "odom_yaw_rate_scale": "odom_yaw_rate_scale", "odom_yaw_rate_bias": "odom_yaw_rate_bias",
-                "laser_offset_x": "laser_offset_x", "lidar_scale_to_map_scale": "lidar_scale_to_map_scale",
-                "map_wall_depth": "map_wall_depth"}
+#: (every value a robot's parameter file takes from ``localization-calibrate``; the parameter files keep the
+#: laser's y and yaw at 0)
+HELDOUT_KEYS = {k: p for k, p in CALIBRATED_PARAMS.items() if p not in ("laser_offset_y", "laser_offset_yaw")}
 #: parameter file -> the HELDOUT_KEYS its robot does not take from calibration: the Pioneer's laser mount comes
 #: from its bags' TF and its wall depth is pinned at 0 (pioneer_params.yaml says why)
 HELDOUT_PINNED = {"pioneer_params.yaml": ("laser_offset_x", "map_wall_depth")}
