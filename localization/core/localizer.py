@@ -225,6 +225,7 @@ class Localizer:
             self._pf.kld_hold = False
             self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
             self._after_init_locked(stamp)
+            self._step.temper_next = True
         return True
 
     def _apply_held_pose(self) -> None:
@@ -253,6 +254,7 @@ class Localizer:
         self._queue.clear()
         t = self._timeline.usable(stamp) if not self._timeline.empty else stamp
         self._step.restart(t)
+        self._step.temper_next = False
         est = self._pf.estimate()
         t = t if t is not None and math.isfinite(t) else 0.0
         self._timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))

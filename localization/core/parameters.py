@@ -109,6 +109,11 @@ PARAMETERS = [
     Param("initial_std_xy", 0.5, "std (m) of the initial cloud when /initialpose has no covariance", _non_negative,
           ">= 0"),
     Param("initial_std_theta", 0.2, "std (rad) of the initial heading spread", _non_negative, ">= 0"),
+    Param("initial_update_stages", 8, "the first scan after an initial pose updates the cloud in up to this many "
+          "tempered stages (likelihood^beta, the betas summing to 1, each keeping half the cloud effective; "
+          "resampled and jittered between stages): the cloud settles onto where that one scan points instead of "
+          "onto the few initial particles nearest to it. 1: one plain update", lambda v: isinstance(v, int) and v >= 1,
+          "an integer >= 1"),
     Param("use_initialpose_covariance", True, "spread the cloud with the covariance of /initialpose when it has one",
           lambda v: isinstance(v, bool), "true or false"),
     Param("global_localization", False, "start with particles spread uniformly over free space (no initial pose "

@@ -10,7 +10,8 @@ For a scan at time t_s (scan clock) with the particles at t_filter:
     seed       a pending global spread is re-seeded from these beams (``GlobalSeeder``)
     deskew     beam b cast from the laser pose at its own time t_b = stamp + i_b · time_increment:
                δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
-    update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``); an update that
+    update     log w ← log w + log p(z | x) / squash; resample (``MonteCarloLocalizer``; the first update after
+               an initial pose in tempered stages, ``initial_update_stages``); an update that
                jumps from the published pose to a place the scan fits no clearly better is undone (``recovery``)
     judge      converged / tracking / holding, and a challenger's search, update and switch
                (``RecoveryPolicy``); while holding, the scan updates only the challenger: the cloud
@@ -87,6 +88,7 @@ class ScanStep:
         self.t_update: float | None = None  # s, scan clock: the last sensor update
         self.impossible = 0  # scans in a row that gave every particle likelihood 0
         self.refused_jumps = 0  # updates undone: they jumped to a place the scan fits no clearly better
+        self.temper_next = False  # the next sensor update is tempered (the first after an initial pose)
 
     def restart(self, t: float | None) -> None:
         """The particles were (re-)initialised at time t."""
@@ -133,7 +135,7 @@ class ScanStep:
         published = self.timeline.pose_at(t_s) if check_jump and not global_mode else None
         guard = published is not None and not recovery.holding
         before = pf.snapshot() if guard else None
-        if not recovery.holding and not pf.sensor_update(b.ranges, b.angles, offsets, range_max=rmax).ok:
+        if not recovery.holding and not self._update(b.ranges, b.angles, offsets, rmax).ok:
             self.impossible += 1
             if self.impossible < p.max_impossible_scans:
                 self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
@@ -157,6 +159,14 @@ class ScanStep:
                                                                   verdict.agreement, distance),
                            beams=b, range_limits=(rmin, rmax), offsets=offsets, refused=refused,
                            jumped=jumped and not refused, published=published)
+
+    def _update(self, ranges, angles, offsets, range_max):
+        """The cloud's sensor update: tempered when ``temper_next`` (then cleared once it succeeded)."""
+        if not self.temper_next:
+            return self.pf.sensor_update(ranges, angles, offsets, range_max=range_max)
+        result = self.pf.tempered_update(ranges, angles, offsets, range_max, self.params.initial_update_stages)
+        self.temper_next = self.temper_next and not result.ok
+        return result
 
     def _refuse_jump(self, published, pose, beams, before) -> bool:
         """Undo an update that jumped (``recovery.is_jump``) from the published pose to a place the scan

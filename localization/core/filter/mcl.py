@@ -9,6 +9,18 @@ State: N particles (x, y, θ) in the map frame and their log-weights.
                then a small Gaussian roughening so the cloud never collapses to one state;
                with a KLD sampler (``kld.py``) each resampling also picks N (adaptive count)
     estimate:  weighted mean of x, y; circular mean of θ; weighted covariance (θ wrapped)
+
+A tempered update (``tempered_update``, the first scan after an initial pose) applies the same scan
+in stages, as progressive correction (Musso, Oudjane & Le Gland) and tempered SMC do:
+
+    stage k:   log w_i ← log w_i + β_k · log p(z | p_i),   β_k the largest step with ESS ≥ ess_target · N
+               (bisection), Σ_k β_k = 1 (the last stage takes what is left)
+    between:   resample, then jitter by N(0, h² Σ) (Σ the cloud's covariance, h = (4 / (N (d + 2)))^(1/(d+4)),
+               d = 3: the regularised particle filter's Gaussian kernel bandwidth)
+
+The scan counts once (the β sum to 1), but the particles move to where it points between stages:
+a wide initial cloud (0.5 m, 0.2 rad) holds only a few particles inside one scan's posterior
+(centimetres), and a plain update leaves the estimate on whichever of them the draw put nearest.
 """
 from __future__ import annotations
 
@@ -141,6 +153,67 @@ class MonteCarloLocalizer:
             resampled = True
         return SensorUpdateResult(True, resampled, ess, mean_ll)
 
+    def tempered_update(self, ranges, angles, offsets=None, range_max=None, max_stages: int = 8,
+                        ess_target: float = 0.5) -> SensorUpdateResult:
+        """One scan applied in up to ``max_stages`` tempered stages (module docstring), then resampled as
+        ``sensor_update`` does; ``mean_log_likelihood`` is the sum of the stages' log normalisers (the
+        scan's evidence, as one plain update gives it; the jitter leaves it slightly low).
+        ``max_stages`` 1: ``sensor_update``."""
+        if max_stages <= 1:
+            return self.sensor_update(ranges, angles, offsets, range_max)
+        n_target = ess_target * self.num_particles
+        left, evidence = 1.0, 0.0
+        for stage in range(max_stages):
+            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
+                                                       range_max=range_max)
+            possible = np.isfinite(log_lik)
+            if not possible.any():
+                if stage == 0:
+                    self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
+                    return SensorUpdateResult(False, False, 0.0, -np.inf)
+                log_lik = np.zeros_like(log_lik)  # the jitter moved every particle off the map: stop here
+                left = 0.0
+            last = stage == max_stages - 1
+            beta = left if last else _tempering_step(self.log_weights, log_lik, possible, left, n_target)
+            combined = self.log_weights + np.where(possible, beta * np.where(possible, log_lik, 0.0), -np.inf)
+            peak = combined.max()
+            step_ll = float(peak + np.log(np.exp(combined - peak).sum()))
+            evidence += step_ll
+            self.log_weights = combined - step_ll
+            left -= beta
+            if left <= 1e-9 or last:
+                break
+            self._resample_regularised(np.exp(self.log_weights))
+        self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
+        weights = np.exp(self.log_weights)
+        ess = float(1.0 / np.dot(weights, weights))
+        resampled = ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0
+        if resampled:
+            self.resample(weights)
+        return SensorUpdateResult(True, resampled, ess, evidence)
+
+    def _resample_regularised(self, weights) -> None:
+        """Systematic resampling, then the regularised kernel's jitter N(0, h² Σ) (Σ: the weighted
+        covariance before resampling, θ wrapped; h the Gaussian kernel's optimal bandwidth for d = 3)."""
+        n = self.num_particles
+        cov = self._weighted_covariance(weights)
+        h = (4.0 / (n * 5.0)) ** (1.0 / 7.0)
+        # a floor of the ordinary roughening keeps Σ positive definite when the cloud is degenerate
+        chol = np.linalg.cholesky(cov + np.diag(np.maximum(self.roughening, 1e-6) ** 2))
+        drawn = self.particles[systematic_indices(weights, n, self.rng.random())]
+        drawn += h * self.rng.standard_normal((n, 3)) @ chol.T
+        drawn[:, 2] = wrap_angle(drawn[:, 2])
+        self.particles = drawn
+        self._reset_weights()
+
+    def _weighted_covariance(self, weights) -> np.ndarray:
+        x = float(np.dot(weights, self.particles[:, 0]))
+        y = float(np.dot(weights, self.particles[:, 1]))
+        th = circular_mean(self.particles[:, 2], weights)
+        diff = self.particles - np.array([x, y, th])
+        diff[:, 2] = wrap_angle(diff[:, 2])
+        return (diff * weights[:, None]).T @ diff
+
     def resample(self, weights=None) -> None:
         """Systematic (low-variance) resampling, then roughening."""
         if weights is None:
@@ -184,7 +257,30 @@ class MonteCarloLocalizer:
         x = float(np.dot(w, self.particles[:, 0]))
         y = float(np.dot(w, self.particles[:, 1]))
         th = circular_mean(self.particles[:, 2], w)
-        diff = self.particles - np.array([x, y, th])
-        diff[:, 2] = wrap_angle(diff[:, 2])
-        cov = (diff * w[:, None]).T @ diff
-        return Estimate(np.array([x, y, th]), cov)
+        return Estimate(np.array([x, y, th]), self._weighted_covariance(w))
+
+
+def effective_sample_size(log_weights) -> float:
+    """1 / Σ w̃_i² of the normalised exp(log_weights) (0 when every weight is 0)."""
+    peak = np.max(log_weights)
+    if not np.isfinite(peak):
+        return 0.0
+    w = np.exp(log_weights - peak)
+    return float(w.sum() ** 2 / np.dot(w, w))
+
+
+def _tempering_step(log_weights, log_lik, possible, left: float, n_target: float, iterations: int = 30) -> float:
+    """The largest β in (0, left] with ESS(log_weights + β · log_lik) ≥ n_target (bisection on β; the
+    impossible particles drop out at any β > 0); ``left`` when even that keeps the ESS."""
+    base = np.where(possible, log_weights, -np.inf)
+    ll = np.where(possible, log_lik, 0.0)
+    if effective_sample_size(base + left * ll) >= n_target:
+        return left
+    lo, hi = 0.0, left
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if effective_sample_size(base + mid * ll) >= n_target:
+            lo = mid
+        else:
+            hi = mid
+    return max(lo, left * 1e-6)
