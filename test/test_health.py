@@ -370,17 +370,19 @@ def _update_moves_the_cloud(stata, truth, believed, moved, caplog):
     loc.set_map(stata)
     loc.set_initial_pose(believed, np.diag([1e-4, 1e-4, 1e-5]))
     caster, mount = ExactRayCaster(stata, 10.0), np.array([0.275, 0.0, 0.0])
-    real_update, updates = loc._pf.sensor_update, []
+    updates = []
 
-    def update(*args, **kwargs):
-        out = real_update(*args, **kwargs)
-        updates.append(1)
-        if len(updates) == 2:
-            loc._pf.set_particles(np.tile(moved + [0.05 * len(poses) * math.cos(moved[2]),
-                                                   0.05 * len(poses) * math.sin(moved[2]), 0.0], (300, 1)))
-        return out
+    def counted(real_update):  # the first update after the initial pose is the tempered one
+        def update(*args, **kwargs):
+            out = real_update(*args, **kwargs)
+            updates.append(1)
+            if len(updates) == 2:
+                loc._pf.set_particles(np.tile(moved + [0.05 * len(poses) * math.cos(moved[2]),
+                                                       0.05 * len(poses) * math.sin(moved[2]), 0.0], (300, 1)))
+            return out
+        return update
 
-    loc._pf.sensor_update = update
+    loc._pf.sensor_update, loc._pf.tempered_update = counted(loc._pf.sensor_update), counted(loc._pf.tempered_update)
     poses = []
     with caplog.at_level(logging.WARNING, logger="test.refuse"):
         for k in range(10):

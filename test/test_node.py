@@ -251,14 +251,17 @@ def block_sensor_updates(r, drive):
     one starts. Returns (entered, release, odometry events, scan events) of the drive's first second."""
     start_localizing(r, drive)
     entered, release = threading.Event(), threading.Event()
-    original = r.node.localizer._pf.sensor_update
+    pf = r.node.localizer._pf
 
-    def slow_update(*args, **kwargs):
-        entered.set()
-        release.wait(10.0)
-        return original(*args, **kwargs)
+    def slow(original):
+        def slow_update(*args, **kwargs):
+            entered.set()
+            release.wait(10.0)
+            return original(*args, **kwargs)
+        return slow_update
 
-    r.node.localizer._pf.sensor_update = slow_update
+    # the first update after the initial pose is the tempered one, the later ones plain
+    pf.sensor_update, pf.tempered_update = slow(pf.sensor_update), slow(pf.tempered_update)
     events = drive.until(1.0)
     return entered, release, [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
 

@@ -114,7 +114,7 @@ def test_estimate_is_stamped_with_the_time_it_describes():
 def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
     loc = _corridor_localizer()
     x0 = loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0)).pose[0]
-    real_update = loc._pf.sensor_update
+    real_update = loc._pf.tempered_update  # the first update after the initial pose
     started = threading.Event()
 
     def slow_update(*args, **kwargs):
@@ -122,7 +122,7 @@ def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
         time.sleep(0.3)
         return real_update(*args, **kwargs)
 
-    loc._pf.sensor_update = slow_update
+    loc._pf.tempered_update = slow_update
     result = []
     worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0))))
     worker.start()
@@ -136,7 +136,7 @@ def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
     worker.join()
     assert max(waits) < 0.15  # odometry never waited for the scan
     assert est.pose[0] == pytest.approx(x0 + 0.1, abs=0.03)  # the estimate carried the queued motion
-    loc._pf.sensor_update = real_update
+    loc._pf.tempered_update = real_update
     (updated,) = result
     assert updated.stamp == 1.0
     out = loc.on_odometry(TwistData(1.12, 1.0, 0.0, 0.0))  # the next call holding the lock applies all of it

@@ -173,6 +173,8 @@ def test_demo_refuses_an_existing_out_unless_overwrite(tmp_path, capsys, monkeyp
     assert (out / "summary.json").read_text() == "{}"
     assert demo.main(["--out", str(out), "--skip-sim", "--skip-real", "--overwrite"]) == 0  # nothing to replay
     assert (out / "summary.json").read_text() != "{}"
+    printed = capsys.readouterr().out
+    assert "Pioneer" not in printed and "RSS" not in printed  # no real bag of either robot
 
 
 # --------------------------------------------------------------------------------------------

@@ -438,7 +438,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--jobs", type=int, default=min(os.cpu_count() or 1, 4), help="parallel replays")
     ap.add_argument("--loop", action="store_true", help="also replay the long loop with biased odometry")
     ap.add_argument("--skip-sim", action="store_true", help="only the real bags")
-    ap.add_argument("--skip-real", action="store_true", help="only the simulated trials")
+    ap.add_argument("--skip-real", action="store_true", help="only the simulated trials (no RSS 2022 or Pioneer "
+                    "bag)")
     ap.add_argument("--skip-fast", action="store_true", help="skip the fast trial (aligned vs unaligned)")
     ap.add_argument("--skip-perturbed", action="store_true", help="only the clean-map simulated trials (no "
                     "perturbed-world rows)")
@@ -456,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    args.skip_pioneer = args.skip_pioneer or args.skip_real  # the Pioneer bags are real bags too
     if args.only is not None:  # one part alone
         args.skip_sim = True
         args.skip_real = args.only != "heldout"
