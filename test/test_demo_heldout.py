@@ -115,3 +115,75 @@ def test_status_counter_counts_the_holding_scans():
         loc.status = s
         c(None, loc)
     assert (c.scans, c.holding) == (4, 2)
+
+
+# ------------------------------------------------------------------ held-out tuning (--heldout-tuning)
+def _metrics(median, p95, along):
+    return {"reference_error_m": {"median": median, "p95": p95}, "along_track_error_m": {"mean": along}}
+
+
+def test_target_ratio_is_the_worst_target_share():
+    assert D.target_ratio(_metrics(0.0175, 0.04, 0.005)) == pytest.approx(0.5)
+    assert D.target_ratio(_metrics(0.01, 0.096, 0.0)) == pytest.approx(1.2)  # p95 over its target
+    assert D.target_ratio(_metrics(0.01, 0.02, -0.03)) == pytest.approx(1.5)  # along counts both ways
+    assert D.target_ratio({"reference_error_m": None}) == float("inf")  # not scored: never chosen
+
+
+def test_choose_points_takes_the_lowest_training_mean_per_fold():
+    scores = {("bag1", (1.0, 0.15)): [0.9, 0.5], ("bag1", (2.0, 0.10)): [0.6, 0.7],
+              ("bag2", (1.0, 0.15)): [0.4, float("inf")], ("bag2", (0.5, 0.20)): [0.8, 0.8]}
+    best = D.choose_points(scores)
+    assert best["bag1"] == ((2.0, 0.10), pytest.approx(0.65))
+    assert best["bag2"] == ((0.5, 0.20), pytest.approx(0.8))  # an unscored training bag rules a point out
+
+
+def test_tuning_jobs_never_replay_a_fold_on_its_own_bag():
+    folds = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(TABLE)[0])
+    base = D.Parameters.from_yaml(D.config_dir() / "real_params.yaml")
+    jobs = [{"label": b, "overrides": {"random_seed": 3}} for b in ("bag1", "bag2", "bag3")]
+    out = D.tuning_jobs(jobs, folds, base, {"random_seed": 3})
+    points = D.tuning_points()
+    assert len(out) == 3 * len(points) * 2
+    for job in out:
+        k = job["fold"]
+        assert job["label"] != k and job["label"] in folds[k]["calibrated_on"]
+        ov = job["overrides"]
+        assert ov["odom_time_offset"] == folds[k]["odom_time_offset"]  # the fold's calibration
+        m, s = job["point"]
+        assert ov["sigma_hit"] == s and ov["motion_a_trans"] == pytest.approx(base["motion_a_trans"] * m)
+        assert ov["random_seed"] == 3 and job["out"] is None
+    assert {(j["fold"], j["point"]) for j in out} == {(k, p) for k in folds for p in points}
+
+
+def test_heldout_tuning_replays_each_bag_with_its_folds_choice(monkeypatch, tmp_path):
+    """A fake replay whose error depends on the grid point and the bag: each fold chooses on its two
+    training bags only, and the held-out bag is replayed with that choice and its fold's calibration."""
+    folds = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(TABLE)[0])
+    # bag3 would favour (0.5, 0.2016) on its own; bag1 and bag2 favour (1.4, 0.1008)
+    favourite = {"bag1": (1.4, 0.1008), "bag2": (1.4, 0.1008), "bag3": (0.5, 0.2016)}
+    calls = []
+
+    def fake_run_all(jobs, workers):
+        calls.append(jobs)
+        out = []
+        for job in jobs:
+            point = next(p for p in D.tuning_points()
+                         if job["overrides"]["sigma_hit"] == p[1]
+                         and job["overrides"]["motion_a_trans"] == pytest.approx(0.4 * p[0]))
+            far = abs(np.log(point[0] / favourite[job["label"]][0])) + abs(point[1] - favourite[job["label"]][1])
+            out.append({"job": job, "metrics": _metrics(0.01 + 0.01 * far, 0.02 + 0.05 * far, 0.0)})
+        return out
+
+    monkeypatch.setattr(D, "_run_all", fake_run_all)
+    jobs = [{"label": b, "overrides": {}} for b in ("bag1", "bag2", "bag3")]
+    table, summary, results = D.heldout_tuning(jobs, folds, D.config_dir() / "real_params.yaml", {}, 1, tmp_path)
+    assert len(calls) == 2 and len(results) == len(calls[0]) + 3
+    assert (summary["bag3"]["motion_scale"], summary["bag3"]["sigma_hit"]) == (1.4, 0.1008)  # from bag1, bag2
+    assert summary["bag3"]["tuned_on"] == ["bag1", "bag2"]
+    # bag1 fold sees bag2 (1.4, 0.1008) and bag3 (0.5, 0.2016): never bag1 itself
+    assert all(j["label"] != j["fold"] for j in calls[0])
+    final = {j["label"]: j for j in calls[1]}
+    assert final["bag2"]["overrides"]["odom_time_offset"] == folds["bag2"]["odom_time_offset"]
+    assert final["bag3"]["overrides"]["sigma_hit"] == 0.1008
+    assert final["bag3"]["out"] == str(tmp_path / "heldout_tuned" / "bag3")
+    assert "bag3" in table and "chosen motion x" in table

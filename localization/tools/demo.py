@@ -35,6 +35,12 @@
    ``pioneer_params.yaml`` (its odometry calibrated on trace0) and held out as in step 5 (the laser
    mount from the bags' TF and the wall depth stay the file's: ``HELDOUT_PINNED``). ``--only pioneer``.
 
+7. ``--heldout-tuning`` (with step 5): the values ``real_params.yaml`` took from the RSS bags' errors
+   rather than from calibration, the motion noise and the beam model's hit width, chosen per fold
+   too: each grid point of ``TUNING_GRID`` is replayed on the fold's two training bags (with the
+   fold's calibration), the point with the lowest mean ``target_ratio`` there is then replayed on the
+   held-out bag. No value of that replay has seen its bag. About five minutes on two cores.
+
 ``--motion-sweep`` adds a table of the real bags' scan-map agreement as the motion-noise
 parameters of ``real_params.yaml`` are scaled (how much the filter should trust the odometry).
 
@@ -299,6 +305,97 @@ def calibration_table(values: dict, folds: dict, keys: dict | None = None) -> st
     return "\n".join(lines)
 
 
+#: What ``config/real_params.yaml`` took from the RSS bags' errors rather than from calibration: the
+#: motion noise (every ``motion_*`` of the file scaled by one factor) and the beam model's hit width
+#: ``sigma_hit`` (m; 1.5, 2, 3 and 4 cells of 0.0504 m).
+TUNING_GRID = {"motion_scale": (0.35, 0.5, 0.7, 1.0, 1.4), "sigma_hit": (0.0756, 0.1008, 0.1512, 0.2016)}
+#: The RSS targets against the yardstick (m): median, p95 and |mean along-track| error.
+YARDSTICK_TARGETS = {"median": 0.035, "p95": 0.08, "along": 0.02}
+
+
+def target_ratio(metrics: dict) -> float:
+    """How a replay scores against the RSS targets: max(median / 0.035, p95 / 0.08, |mean along| / 0.02)
+    of its error vs the yardstick (below 1: every target met; inf: not scored)."""
+    ref = metrics.get("reference_error_m") or {}
+    along = (metrics.get("along_track_error_m") or {}).get("mean")
+    if ref.get("median") is None or ref.get("p95") is None or along is None:
+        return float("inf")
+    t = YARDSTICK_TARGETS
+    return max(ref["median"] / t["median"], ref["p95"] / t["p95"], abs(along) / t["along"])
+
+
+def tuning_points() -> list[tuple[float, float]]:
+    """The grid's points (motion scale, sigma_hit)."""
+    return [(m, s) for m in TUNING_GRID["motion_scale"] for s in TUNING_GRID["sigma_hit"]]
+
+
+def tuning_overrides(base: Parameters, point: tuple[float, float]) -> dict:
+    """The parameter overrides of a grid point: ``base``'s motion noise scaled, and its hit width."""
+    m, s = point
+    return {**{k: float(base[k]) * m for k in MOTION_NOISE_PARAMS}, "sigma_hit": float(s)}
+
+
+def choose_points(scores: dict) -> dict:
+    """fold -> (point, its mean target ratio over the fold's training bags), from ``scores``:
+    (fold, point) -> the training bags' ratios; the lowest mean wins (the first of equals)."""
+    best: dict = {}
+    for (fold, point), ratios in scores.items():
+        mean = float(np.mean(ratios)) if ratios else float("inf")
+        if fold not in best or mean < best[fold][1]:
+            best[fold] = (point, mean)
+    return best
+
+
+def tuning_jobs(jobs: list, folds: dict, base: Parameters, overrides: dict) -> list:
+    """Phase one of the held-out tuning: every grid point on every fold's training bags (never the fold's
+    own bag), with that fold's calibration."""
+    out = []
+    for k, fold in folds.items():
+        cal = {p: v for p, v in fold.items() if p != "calibrated_on"}
+        for point in tuning_points():
+            for job in jobs:
+                if job["label"] != k:
+                    out.append({**job, "overrides": {**overrides, **cal, **tuning_overrides(base, point)},
+                                "out": None, "plots": False, "fold": k, "point": point})
+    return out
+
+
+def heldout_tuning(jobs: list, folds: dict, params_file, overrides: dict, workers: int, out: Path) -> tuple:
+    """Both phases (module docstring, step 7); returns (table text, summary dict, results)."""
+    base = Parameters.from_yaml(params_file)
+    grid = _run_all(tuning_jobs(jobs, folds, base, overrides), workers)
+    scores: dict = {}
+    for r in grid:
+        ratio = target_ratio(r["metrics"]) if "metrics" in r else float("inf")
+        scores.setdefault((r["job"]["fold"], r["job"]["point"]), []).append(ratio)
+    chosen = choose_points(scores)
+    finals = []
+    for job in jobs:
+        k = job["label"]
+        cal = {p: v for p, v in folds[k].items() if p != "calibrated_on"}
+        finals.append({**job, "overrides": {**overrides, **cal, **tuning_overrides(base, chosen[k][0])},
+                       "out": str(out / "heldout_tuned" / k), "plots": False})
+    final = _run_all(finals, workers)
+    file_point = (1.0, float(base["sigma_hit"]))
+    lines = [f"{'bag':<6} {'chosen motion x':>15} {'sigma_hit':>9} {'train ratio':>11} {'file point':>10} "
+             f"{'median':>7} {'p95':>6} {'along':>7} {'ratio':>6}"]
+    summary = {}
+    for r in final:
+        k = r["job"]["label"]
+        point, train = chosen[k]
+        own = scores.get((k, file_point))
+        m = r.get("metrics", {})
+        ref, along = m.get("reference_error_m") or {}, (m.get("along_track_error_m") or {}).get("mean")
+        lines.append(f"{k:<6} {point[0]:>15.2f} {point[1]:>9.4f} {train:>11.3f} "
+                     f"{_f(float(np.mean(own)) if own else None):>10} {_f(ref.get('median')):>7} "
+                     f"{_f(ref.get('p95')):>6} {_f(along, '+.3f'):>7} {_f(target_ratio(m) if m else None, '.2f'):>6}")
+        summary[k] = {"motion_scale": point[0], "sigma_hit": point[1], "training_ratio": train,
+                      "file_point_training_ratio": float(np.mean(own)) if own else None,
+                      "tuned_on": folds[k]["calibrated_on"], "metrics": m or {"error": r.get("error")},
+                      "grid": {f"{pt[0]}x {pt[1]}": float(np.mean(v)) for (f, pt), v in scores.items() if f == k}}
+    return "\n".join(lines), summary, grid + final
+
+
 def yardstick_table(results: list) -> str:
     """Error against the yardstick: median, p95, mean along-track (m), and the agreement."""
     def row(name, m):
@@ -445,6 +542,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "perturbed-world rows)")
     ap.add_argument("--skip-heldout", action="store_true", help="skip the held-out calibration of the real bags")
     ap.add_argument("--skip-pioneer", action="store_true", help="skip the Pioneer bags")
+    ap.add_argument("--heldout-tuning", action="store_true", help="with the held-out replays: also choose the "
+                    "motion noise and sigma_hit per fold on the other two bags (a grid, about five minutes) and "
+                    "replay each bag with its fold's choice")
     ap.add_argument("--only", choices=ONLY, help="run only this part: heldout (the RSS bags with all-bags and "
                     "held-out calibration, a few minutes) or pioneer (the three Pioneer bags)")
     ap.add_argument("--duration", type=float, help="truncate the simulated trials to this many seconds")
@@ -608,6 +708,17 @@ def main(argv=None) -> int:
         print("HELD-OUT (odometry timing, speed scale, yaw-rate scale and bias, laser x, range scale and wall depth "
               "calibrated on the other two bags only; the rest from real_params.yaml):")
         print(yardstick_table(heldout_res))
+    tuned_summary, tuned_res = {}, []
+    if heldout_res and args.heldout_tuning:
+        print(f"\nchoosing the motion noise and sigma_hit per fold ({len(tuning_points())} grid points on each fold's "
+              "two training bags) ...", file=sys.stderr)
+        table, tuned_summary, tuned_res = heldout_tuning(real_jobs, folds, real_params, overrides, args.jobs, out)
+        print("\nHELD-OUT CALIBRATION AND TUNING: the motion noise (real_params.yaml's motion_* x a factor) and "
+              f"sigma_hit chosen per fold from {TUNING_GRID} on the other two bags (lowest mean of max(median/0.035, "
+              "p95/0.08, |along|/0.02) there, with the fold's calibration), then the held-out bag replayed with "
+              "them; train ratio = that mean for the chosen point, file point = for real_params.yaml's own (x1, "
+              "its sigma_hit); error vs the yardstick in metres:")
+        print(table)
     if pioneer_res:
         print(f"\nPioneer 3-DX bags (lgfloor, config/pioneer_params.yaml, {n} particles, seed {args.seed}): converge = "
               f"first time from which the estimate stays within {CONVERGED_M} m of the yardstick's confident poses for "
@@ -636,13 +747,15 @@ def main(argv=None) -> int:
     summary = {r["job"]["label"] + (f"@{r['job']['scale']}" if "scale" in r["job"] else "")
                + ("@heldout" if r["job"] in heldout_jobs or r["job"] in pioneer_heldout_jobs else ""):
                r.get("metrics", {"error": r.get("error")}) for r in results}
+    if tuned_summary:
+        summary["heldout_tuned"] = tuned_summary
     if folds or pioneer_folds:
         summary["heldout_folds"] = {**folds, **pioneer_folds}
         summary["calibration"] = calibrated
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"\nplots and metrics: {out}/<trial or bag>/(trajectory.png, error.png, metrics.json, poses.csv); "
           f"summary: {out / 'summary.json'}  [{time.perf_counter() - t0:.0f} s]")
-    return 1 if any("error" in r for r in results) else 0
+    return 1 if any("error" in r for r in results + tuned_res) else 0
 
 
 if __name__ == "__main__":
