@@ -117,6 +117,23 @@ def test_impossible_scan_is_reported_and_the_cloud_kept():
     assert np.all(np.isfinite(f.estimate().pose))
 
 
+def test_a_later_stage_where_every_particle_is_impossible_keeps_the_stages_so_far():
+    class Vanishing(GaussianScanModel):
+        calls = 0
+
+        def log_likelihood(self, particles, *args, **kwargs):
+            Vanishing.calls += 1
+            ll = super().log_likelihood(particles, *args, **kwargs)
+            return ll if Vanishing.calls == 1 else np.full(len(particles), -np.inf)
+    f = MonteCarloLocalizer(MotionModel(), Vanishing(), num_particles=500, rng=4)
+    f.initialize_gaussian(PRIOR_MEAN, std=PRIOR_STD)
+    result = f.tempered_update(None, None, max_stages=8)
+    assert result.ok and Vanishing.calls == 2 and np.isfinite(result.mean_log_likelihood)
+    assert np.all(np.isfinite(f.log_weights)) and np.all(np.isfinite(f.estimate().pose))
+    # the first stage moved the cloud toward the peak
+    assert np.hypot(*(f.estimate().pose[:2] - PEAK[:2])) < np.hypot(*(PRIOR_MEAN[:2] - PEAK[:2]))
+
+
 def test_partly_impossible_cloud_keeps_only_possible_particles():
     class HalfPlane(GaussianScanModel):
         def log_likelihood(self, particles, *args, **kwargs):

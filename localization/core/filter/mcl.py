@@ -171,8 +171,7 @@ class MonteCarloLocalizer:
                 if stage == 0:
                     self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
                     return SensorUpdateResult(False, False, 0.0, -np.inf)
-                log_lik = np.zeros_like(log_lik)  # the jitter moved every particle off the map: stop here
-                left = 0.0
+                break  # the jitter moved every particle where the scan is impossible: the stages so far stand
             last = stage == max_stages - 1
             beta = left if last else _tempering_step(self.log_weights, log_lik, possible, left, n_target)
             combined = self.log_weights + np.where(possible, beta * np.where(possible, log_lik, 0.0), -np.inf)
