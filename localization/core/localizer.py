@@ -224,8 +224,7 @@ class Localizer:
             self._pf.resize(self.params.num_particles)
             self._pf.kld_hold = False
             self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
-            self._after_init_locked(stamp)
-            self._step.temper_next = True
+            self._after_init_locked(stamp, temper=True)
         return True
 
     def _apply_held_pose(self) -> None:
@@ -246,15 +245,16 @@ class Localizer:
         self._after_init_locked(stamp)
         return True
 
-    def _after_init_locked(self, stamp: float | None) -> None:
-        """The particles describe ``stamp`` (scan clock; the newest odometry's time if unusable)."""
+    def _after_init_locked(self, stamp: float | None, temper: bool = False) -> None:
+        """The particles describe ``stamp`` (scan clock; the newest odometry's time if unusable); ``temper``:
+        the first sensor update is tempered (a Gaussian cloud around an initial pose)."""
         self._recovery.restart()
         self._glide.stop()
         self._policy.force()
         self._queue.clear()
         t = self._timeline.usable(stamp) if not self._timeline.empty else stamp
         self._step.restart(t)
-        self._step.temper_next = False
+        self._step.temper_next = temper
         est = self._pf.estimate()
         t = t if t is not None and math.isfinite(t) else 0.0
         self._timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))

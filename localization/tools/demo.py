@@ -250,6 +250,11 @@ def heldout_folds(bags, calibrate, keys: dict | None = None) -> dict:
     return folds
 
 
+def fold_overrides(fold: dict) -> dict:
+    """A held-out fold's parameter overrides (without its ``"calibrated_on"`` bags)."""
+    return {p: v for p, v in fold.items() if p != "calibrated_on"}
+
+
 def _calibrate_job(name: str) -> dict:
     """``localization-calibrate`` on a real bag (RSS 2022 or Pioneer; in a worker process): the mount
     guess, stamp convention, odometry source and start pose as for its replay; returns {name, values}
@@ -313,15 +318,20 @@ TUNING_GRID = {"motion_scale": (0.35, 0.5, 0.7, 1.0, 1.4), "sigma_hit": (0.0756,
 YARDSTICK_TARGETS = {"median": 0.035, "p95": 0.08, "along": 0.02}
 
 
+def yardstick_errors(metrics: dict) -> tuple:
+    """(median, p95, mean along-track) error (m) of a replay's metrics vs the yardstick; None: not scored."""
+    ref = metrics.get("reference_error_m") or {}
+    return ref.get("median"), ref.get("p95"), (metrics.get("along_track_error_m") or {}).get("mean")
+
+
 def target_ratio(metrics: dict) -> float:
     """How a replay scores against the RSS targets: max(median / 0.035, p95 / 0.08, |mean along| / 0.02)
     of its error vs the yardstick (below 1: every target met; inf: not scored)."""
-    ref = metrics.get("reference_error_m") or {}
-    along = (metrics.get("along_track_error_m") or {}).get("mean")
-    if ref.get("median") is None or ref.get("p95") is None or along is None:
+    median, p95, along = yardstick_errors(metrics)
+    if median is None or p95 is None or along is None:
         return float("inf")
     t = YARDSTICK_TARGETS
-    return max(ref["median"] / t["median"], ref["p95"] / t["p95"], abs(along) / t["along"])
+    return max(median / t["median"], p95 / t["p95"], abs(along) / t["along"])
 
 
 def tuning_points() -> list[tuple[float, float]]:
@@ -351,7 +361,7 @@ def tuning_jobs(jobs: list, folds: dict, base: Parameters, overrides: dict) -> l
     own bag), with that fold's calibration."""
     out = []
     for k, fold in folds.items():
-        cal = {p: v for p, v in fold.items() if p != "calibrated_on"}
+        cal = fold_overrides(fold)
         for point in tuning_points():
             for job in jobs:
                 if job["label"] != k:
@@ -372,8 +382,8 @@ def heldout_tuning(jobs: list, folds: dict, params_file, overrides: dict, worker
     finals = []
     for job in jobs:
         k = job["label"]
-        cal = {p: v for p, v in folds[k].items() if p != "calibrated_on"}
-        finals.append({**job, "overrides": {**overrides, **cal, **tuning_overrides(base, chosen[k][0])},
+        finals.append({**job, "overrides": {**overrides, **fold_overrides(folds[k]),
+                                            **tuning_overrides(base, chosen[k][0])},
                        "out": str(out / "heldout_tuned" / k), "plots": False})
     final = _run_all(finals, workers)
     file_point = (1.0, float(base["sigma_hit"]))
@@ -384,13 +394,13 @@ def heldout_tuning(jobs: list, folds: dict, params_file, overrides: dict, worker
         k = r["job"]["label"]
         point, train = chosen[k]
         own = scores.get((k, file_point))
+        own = float(np.mean(own)) if own else None
         m = r.get("metrics", {})
-        ref, along = m.get("reference_error_m") or {}, (m.get("along_track_error_m") or {}).get("mean")
-        lines.append(f"{k:<6} {point[0]:>15.2f} {point[1]:>9.4f} {train:>11.3f} "
-                     f"{_f(float(np.mean(own)) if own else None):>10} {_f(ref.get('median')):>7} "
-                     f"{_f(ref.get('p95')):>6} {_f(along, '+.3f'):>7} {_f(target_ratio(m) if m else None, '.2f'):>6}")
+        median, p95, along = yardstick_errors(m)
+        lines.append(f"{k:<6} {point[0]:>15.2f} {point[1]:>9.4f} {train:>11.3f} {_f(own):>10} {_f(median):>7} "
+                     f"{_f(p95):>6} {_f(along, '+.3f'):>7} {_f(target_ratio(m) if m else None, '.2f'):>6}")
         summary[k] = {"motion_scale": point[0], "sigma_hit": point[1], "training_ratio": train,
-                      "file_point_training_ratio": float(np.mean(own)) if own else None,
+                      "file_point_training_ratio": own,
                       "tuned_on": folds[k]["calibrated_on"], "metrics": m or {"error": r.get("error")},
                       "grid": {f"{pt[0]}x {pt[1]}": float(np.mean(v)) for (f, pt), v in scores.items() if f == k}}
     return "\n".join(lines), summary, grid + final
@@ -619,8 +629,7 @@ def main(argv=None) -> int:
         if not args.skip_heldout:
             folds = heldout_folds(REAL_BAGS, calibrated.__getitem__, heldout_keys(real_params))
             for job in real_jobs:
-                fold = {k: v for k, v in folds[job["label"]].items() if k != "calibrated_on"}
-                heldout_jobs.append({**job, "overrides": {**overrides, **fold},
+                heldout_jobs.append({**job, "overrides": {**overrides, **fold_overrides(folds[job["label"]])},
                                      "out": str(out / "heldout" / job["label"]), "plots": False})
         if args.motion_sweep is not None:
             scales = args.motion_sweep or [0.25, 0.5, 1.0, 2.0]
@@ -643,7 +652,7 @@ def main(argv=None) -> int:
             keys = heldout_keys(PIONEER_BAGS["trace0"].params)
             pioneer_folds = heldout_folds(PIONEER_BAGS, calibrated.__getitem__, keys)
             for job in pioneer_jobs:
-                fold = {k: v for k, v in pioneer_folds[job["label"]].items() if k != "calibrated_on"}
+                fold = fold_overrides(pioneer_folds[job["label"]])
                 pioneer_heldout_jobs.append({**job, "overrides": {**job["overrides"], **fold},
                                              "out": str(out / "heldout" / job["label"]), "plots": False})
 

@@ -134,24 +134,11 @@ class MonteCarloLocalizer:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
         per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``);
         ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0."""
-        log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
-                                                   range_max=range_max)
-        # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
-        self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
-        combined = self.log_weights + log_lik
-        peak = combined.max()
-        if not np.isfinite(peak):
-            return SensorUpdateResult(False, False, 0.0, -np.inf)
         # log of the weighted-mean likelihood (per beam, squashed): used as a health signal
-        mean_ll = float(peak + np.log(np.exp(combined - peak).sum()))
-        self.log_weights = combined - mean_ll
-        weights = np.exp(self.log_weights)
-        ess = float(1.0 / np.dot(weights, weights))
-        resampled = False
-        if ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0:
-            self.resample(weights)
-            resampled = True
-        return SensorUpdateResult(True, resampled, ess, mean_ll)
+        mean_ll = self._weigh(self._log_likelihood(ranges, angles, offsets, range_max))
+        if mean_ll is None:
+            return SensorUpdateResult(False, False, 0.0, -np.inf)
+        return self._resample_if_due(mean_ll)
 
     def tempered_update(self, ranges, angles, offsets=None, range_max=None, max_stages: int = 8,
                         ess_target: float = 0.5) -> SensorUpdateResult:
@@ -164,32 +151,50 @@ class MonteCarloLocalizer:
         n_target = ess_target * self.num_particles
         left, evidence = 1.0, 0.0
         for stage in range(max_stages):
-            log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
-                                                       range_max=range_max)
+            log_lik = self._log_likelihood(ranges, angles, offsets, range_max)
             possible = np.isfinite(log_lik)
-            if not possible.any():
+            last = stage == max_stages - 1
+            beta = left if last or not possible.any() else _tempering_step(self.log_weights, log_lik, possible,
+                                                                           left, n_target)
+            step_ll = self._weigh(np.where(possible, beta * log_lik, -np.inf))
+            if step_ll is None:
                 if stage == 0:
-                    self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
                     return SensorUpdateResult(False, False, 0.0, -np.inf)
                 break  # the jitter moved every particle where the scan is impossible: the stages so far stand
-            last = stage == max_stages - 1
-            beta = left if last else _tempering_step(self.log_weights, log_lik, possible, left, n_target)
-            combined = self.log_weights + np.where(possible, beta * np.where(possible, log_lik, 0.0), -np.inf)
-            peak = combined.max()
-            step_ll = float(peak + np.log(np.exp(combined - peak).sum()))
             evidence += step_ll
-            self.log_weights = combined - step_ll
             left -= beta
             if left <= 1e-9 or last:
                 break
             self._resample_regularised(np.exp(self.log_weights))
+        return self._resample_if_due(evidence)
+
+    def _log_likelihood(self, ranges, angles, offsets, range_max) -> np.ndarray:
+        """The sensor model's log p(z | particle); records the (used, offered) beams of the update."""
+        log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
+                                                   range_max=range_max)
+        # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
         self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
+        return log_lik
+
+    def _weigh(self, log_factor) -> float | None:
+        """log w ← log w + log_factor, normalised in log space; returns the log normaliser (log of the
+        weighted-mean factor), or None with the weights unchanged when every particle gets weight 0."""
+        combined = self.log_weights + log_factor
+        peak = combined.max()
+        if not np.isfinite(peak):
+            return None
+        norm = float(peak + np.log(np.exp(combined - peak).sum()))
+        self.log_weights = combined - norm
+        return norm
+
+    def _resample_if_due(self, mean_ll: float) -> SensorUpdateResult:
+        """Resample when the ESS is below ``resample_ess_fraction`` · N (always at 1.0)."""
         weights = np.exp(self.log_weights)
         ess = float(1.0 / np.dot(weights, weights))
         resampled = ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0
         if resampled:
             self.resample(weights)
-        return SensorUpdateResult(True, resampled, ess, evidence)
+        return SensorUpdateResult(True, resampled, ess, mean_ll)
 
     def _resample_regularised(self, weights) -> None:
         """Systematic resampling, then the regularised kernel's jitter N(0, h² Σ) (Σ: the weighted
