@@ -42,3 +42,9 @@ def localize_recording(rec, params, occupancy_map):
     feeder.feed(recording_events(rec))
     t, poses = feeder.log.estimates()
     return feeder.log, compare_to_truth(t, poses, rec.truth_t, rec.truth_poses)
+
+
+def wrap_sensor_updates(pf, wrap) -> None:
+    """Replace a filter's sensor updates by ``wrap(update)``: the plain one and the tempered one (the
+    first update after an initial pose), so a test that blocks or counts updates sees every one."""
+    pf.sensor_update, pf.tempered_update = wrap(pf.sensor_update), wrap(pf.tempered_update)

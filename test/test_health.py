@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import corridor_map
+from helpers import corridor_map, wrap_sensor_updates
 
 from localization.benchmarks import robustness as RB
 from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
@@ -372,7 +372,7 @@ def _update_moves_the_cloud(stata, truth, believed, moved, caplog):
     caster, mount = ExactRayCaster(stata, 10.0), np.array([0.275, 0.0, 0.0])
     updates = []
 
-    def counted(real_update):  # the first update after the initial pose is the tempered one
+    def counted(real_update):
         def update(*args, **kwargs):
             out = real_update(*args, **kwargs)
             updates.append(1)
@@ -382,7 +382,7 @@ def _update_moves_the_cloud(stata, truth, believed, moved, caplog):
             return out
         return update
 
-    loc._pf.sensor_update, loc._pf.tempered_update = counted(loc._pf.sensor_update), counted(loc._pf.tempered_update)
+    wrap_sensor_updates(loc._pf, counted)
     poses = []
     with caplog.at_level(logging.WARNING, logger="test.refuse"):
         for k in range(10):

@@ -23,6 +23,7 @@ pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built into this venv (s
 import node_harness as h  # noqa: E402
 import rclpy  # noqa: E402
 from geometry_msgs.msg import PoseArray  # noqa: E402
+from helpers import wrap_sensor_updates  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 
 from localization.core.geometry import compose, quaternion_to_yaw, wrap_angle  # noqa: E402
@@ -260,8 +261,7 @@ def block_sensor_updates(r, drive):
             return original(*args, **kwargs)
         return slow_update
 
-    # the first update after the initial pose is the tempered one, the later ones plain
-    pf.sensor_update, pf.tempered_update = slow(pf.sensor_update), slow(pf.tempered_update)
+    wrap_sensor_updates(pf, slow)
     events = drive.until(1.0)
     return entered, release, [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
 
