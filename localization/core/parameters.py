@@ -204,6 +204,9 @@ PARAMETERS = [
     # --- sensor model
     Param("num_beams_per_particle", 100, "beams of each scan used by the sensor model",
           lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
+    Param("angle_step", 0, "take every angle_step-th beam of the scan, from the first (the course's downsampling "
+          "stride: 11 gives 99 of a Hokuyo's 1081 beams); 0: num_beams_per_particle beams spread evenly over the scan",
+          lambda v: isinstance(v, int) and 0 <= v <= 10000, "an integer in [0, 10000]"),
     Param("scan_field_of_view", 4.71, "field of view (rad) assumed when a scan carries no angles (the course's "
           "convention)", lambda v: _positive(v) and v <= 2 * math.pi + 1e-6, "in (0, 2 pi]"),
     Param("scan_theta_discretization", 144, "heading bins of the precomputed range table (lookup_table "
@@ -388,6 +391,10 @@ PARAMETERS = [
 
 BY_NAME = {p.name: p for p in PARAMETERS}
 
+#: Frame ids: a leading "/" (ROS 1 style, as the course's files write "/base_link") is dropped, with one note.
+FRAME_PARAMETERS = ("map_frame", "odom_frame", "particle_filter_frame", "base_frame")
+_NOTED_FRAMES: set = set()
+
 #: Where the course's classes, constructed with no arguments (``SensorModel()``, ``MotionModel()``
 #: as the course's starter code and tests do), deliberately keep the course's values instead of
 #: the node's tuned defaults above. This is the only place such a difference is stated
@@ -426,6 +433,19 @@ def default(name: str, course: bool = False):
     return BY_NAME[name].default
 
 
+def coerce_number(default, value):
+    """A number as a parameter file may write it, in the type of the parameter's ``default``: an integer
+    for a float parameter (``1`` for ``1.0``) and a whole float for an integer one (the course's
+    ``scan_theta_discretization: 500.0``); anything else unchanged (the rules then judge it)."""
+    if isinstance(value, bool) or isinstance(default, bool):
+        return value
+    if isinstance(default, float) and isinstance(value, int):
+        return float(value)
+    if isinstance(default, int) and isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
 def _flatten(values: dict, prefix: str = "") -> dict:
     """Nested YAML mappings as ROS 2 reads them: ``initial_pose: {x: 1.0}`` -> ``initial_pose.x``."""
     flat = {}
@@ -451,7 +471,22 @@ class Parameters(dict):
         # deprecated names last: their conversion may read another value (sigma_hit_cells: table_resolution)
         for name, value in sorted(merged.items(), key=lambda item: item[0] in DEPRECATED):
             self[name] = value
+        self._normalise_frames()
         self.validate()
+
+    def _normalise_frames(self) -> None:
+        """Frame ids lose a leading "/" (tf2 refuses it); one note per value, the first time it is seen."""
+        changed = []
+        for name in FRAME_PARAMETERS:
+            value = self[name]
+            if isinstance(value, str) and value.startswith("/") and value.strip("/"):
+                super().__setitem__(name, value.lstrip("/"))
+                if (name, value) not in _NOTED_FRAMES:
+                    _NOTED_FRAMES.add((name, value))
+                    changed.append(f"{name} {value!r} -> {value.lstrip('/')!r}")
+        if changed:
+            logging.getLogger("localization.parameters").info(
+                "frame ids are used without their leading '/': " + ", ".join(changed))
 
     def __setitem__(self, name, value):
         if name in DEPRECATED:
@@ -462,9 +497,7 @@ class Parameters(dict):
             name, value = old.new, converted
         if name not in BY_NAME:
             raise ParameterError(f"unknown parameter {name!r}")
-        default = BY_NAME[name].default
-        if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
+        value = coerce_number(BY_NAME[name].default, value)
         super().__setitem__(name, value)
 
     def __getattr__(self, name):

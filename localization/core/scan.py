@@ -78,11 +78,12 @@ def clean_ranges(ranges, range_min: float, range_max: float) -> np.ndarray:
 
 
 def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = None,
-                    range_max: float | None = None) -> Scan:
-    """Pick ``num_beams`` evenly spread beams of a full scan; invalid ranges count as max range
+                    range_max: float | None = None, angle_step: int = 0) -> Scan:
+    """Pick ``num_beams`` evenly spread beams of a full scan, or with ``angle_step`` > 0 every
+    ``angle_step``-th beam from the first (the course's stride); invalid ranges count as max range
     (``range_min``/``range_max`` replace the scan's own limits when given)."""
     ranges = np.asarray(scan.ranges, dtype=float).ravel()
-    idx = downsample_indices(ranges.size, num_beams)
+    idx = np.arange(0, ranges.size, int(angle_step)) if angle_step > 0 else downsample_indices(ranges.size, num_beams)
     angles = beam_angles(ranges.size, scan.angle_min, scan.angle_max, scan.angle_increment)[idx]
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max

@@ -51,14 +51,15 @@ class StepOutcome:
     published: PoseEstimate | None = None  # the published pose carried to the scan's time, when the jump check read it
 
 
-def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn):
-    """The downsampled beams of a scan and its range limits (None, and a warning, when no beam is valid);
-    unusable limits fall back to [0, the sensor model's max range]."""
+def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, angle_step: int = 0):
+    """The downsampled beams of a scan (``num_beams`` evenly spread, or every ``angle_step``-th) and its
+    range limits (None, and a warning, when no beam is valid); unusable limits fall back to [0, the
+    sensor model's max range]."""
     rmin, rmax = scan.range_min, scan.range_max
     if not (math.isfinite(rmin) and math.isfinite(rmax) and 0 <= rmin < rmax):
         warn("scan-limits", f"scan range limits [{rmin}, {rmax}] are unusable: using [0, {model_max_range:.2f}] m")
         rmin, rmax = 0.0, model_max_range
-    beams = downsample_scan(scan, num_beams, rmin, rmax)
+    beams = downsample_scan(scan, num_beams, rmin, rmax, angle_step)
     if not np.isfinite(beams.ranges).any():
         warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
         return None
@@ -124,7 +125,7 @@ class ScanStep:
         speed, yaw_rate = math.hypot(twist[0], twist[1]), twist[2]
         if self.policy.reason(distance, angle, speed, yaw_rate) is None:
             return StepOutcome()
-        usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, self.warn)
+        usable = usable_beams(scan, p.num_beams_per_particle, model.max_range, self.warn, p.angle_step)
         if usable is None:
             return StepOutcome()
         b, rmin, rmax = usable

@@ -8,7 +8,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
-from localization.core.parameters import BY_NAME, PARAMETERS, ParameterError, Parameters
+from localization.core.parameters import BY_NAME, PARAMETERS, ParameterError, Parameters, coerce_number
 
 MAP_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -38,8 +38,9 @@ def declare_parameters(node: Node) -> Parameters:
             values[p.name] = node.declare_parameter(p.name, p.default, desc).value
         except InvalidParameterTypeException:
             given = overrides[p.name].value if p.name in overrides else None
-            if isinstance(p.default, float) and isinstance(given, int) and not isinstance(given, bool):
-                values[p.name] = node.declare_parameter(p.name, float(given), desc, ignore_override=True).value
+            value = coerce_number(p.default, given)
+            if value is not given and type(value) is type(p.default):  # 500.0 for an integer, 1 for a float
+                values[p.name] = node.declare_parameter(p.name, value, desc, ignore_override=True).value
             else:
                 problems.append(f"{p.name}={given!r} must be {_TYPE_NAMES[type(p.default)]}"
                                 + (f" ({p.rule})" if p.rule else ""))
