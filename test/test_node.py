@@ -419,7 +419,7 @@ def _angles(scan):
 
 
 # ------------------------------------------------------------------------------------------ files
-@pytest.mark.parametrize("name", ["params.yaml", "real_params.yaml"])
+@pytest.mark.parametrize("name", ["params.yaml"])  # robot files hold only their own values (test_parameter_surface)
 def test_parameter_files_name_only_declared_parameters(name):
     import yaml
 
