@@ -34,6 +34,9 @@ Errors: a missing or unreadable bag raises ``BagError`` (a ``ValueError``) with 
 """
 from __future__ import annotations
 
+import re
+import sqlite3
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -208,8 +211,13 @@ def _resolve_path(path) -> Path:
     return p
 
 
+try:  # rosbags reads rosbag2's SQLite storage through apsw
+    from apsw import Error as _ApswError
+except ImportError:  # pragma: no cover - rosbags without apsw
+    _ApswError = sqlite3.Error
+
 _OPEN_ERRORS = (AnyReaderError, Rosbag1ReaderError, Rosbag2ReaderError, TypesysError, SerdeError, OSError,
-                KeyError, EOFError)
+                KeyError, EOFError, struct.error, sqlite3.Error, _ApswError)
 
 
 def _type_deps(fielddefs: dict, name: str, out: set) -> None:
@@ -329,7 +337,10 @@ class BagReader:
             if self.ros_version == 1 or self.path.is_dir():
                 self._end_ns = int(reader.end_time) - 1
             else:
-                self._end_ns = max(int(t) for _, t, _ in reader.messages())
+                try:
+                    self._end_ns = max(int(t) for _, t, _ in reader.messages())
+                except _OPEN_ERRORS as exc:
+                    raise BagError(f"error while reading bag {self.path}: {describe_error(exc)}") from None
         return self._end_ns
 
     @property
@@ -368,9 +379,39 @@ class BagReader:
     __iter__ = messages
 
 
+#: what rosbags, apsw and the storage plugins say about a file cut short or overwritten -> what is wrong, for a user
+_DAMAGED = (
+    (re.compile(r"not indexed", re.I),
+     "the bag has no index (its recording was never closed): run rosbag reindex on it"),
+    (re.compile(r"index looks damaged|could not be read|unexpected end|truncated|\bEOF", re.I),
+     "the file is truncated or damaged"),
+    (re.compile(r"magic", re.I), "the file is truncated or damaged (no MCAP start or end marker)"),
+    (re.compile(r"malformed|not a database|disk image", re.I),
+     "the file is truncated or damaged (its SQLite database is malformed)"),
+)
+
+
+def _flat_text(value) -> str:
+    """An exception's arguments as plain words: nested tuples and quotes unwrapped (rosbags wraps the
+    original error's ``args`` tuple into its own message)."""
+    if isinstance(value, BaseException):
+        return _flat_text(value.args) if value.args else type(value).__name__
+    if isinstance(value, (tuple, list)):
+        return ", ".join(t for t in (_flat_text(v).rstrip(".") for v in value) if t)
+    text = str(value)
+    # "... damaged: ('Header could not be read from file.',)" -> "... damaged: Header could not be read from file."
+    text = re.sub(r"\(\s*(['\"])(.*?)\1\s*,?\s*\)", r"\2", text)
+    return text.strip()
+
+
 def describe_error(exc: BaseException) -> str:
-    text = " ".join(str(a) for a in exc.args) if exc.args else ""
-    return text or type(exc).__name__
+    """One line saying what is wrong with a bag: a known kind of damage in words a user can act on, then
+    the reader library's own words; else those words alone (never a Python repr)."""
+    detail = _flat_text(exc).rstrip(".")
+    for pattern, meaning in _DAMAGED:
+        if pattern.search(detail):
+            return f"{meaning}; the reader says: {detail}"
+    return detail
 
 
 def open_bag(path) -> BagReader:
