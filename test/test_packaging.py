@@ -21,7 +21,9 @@ DISTRIBUTION = {"PIL": "pillow", "yaml": "pyyaml", "foxglove": "foxglove-sdk"}
 ROS = {"rclpy", "ament_index_python", "builtin_interfaces", "rcl_interfaces", "std_msgs", "std_srvs", "sensor_msgs",
        "nav_msgs", "geometry_msgs", "diagnostic_msgs", "lifecycle_msgs", "tf2_ros", "tf2_msgs", "launch", "launch_ros"}
 #: optional tools: the only modules allowed to import an extra's package
-EXTRA_USERS = {"optuna": ("localization/eval/tuning.py", "localization/tools/tune.py"),
+TUNING = "localization/eval/tuning/"
+EXTRA_USERS = {"optuna": (f"{TUNING}objective.py", f"{TUNING}storage.py", f"{TUNING}study.py", f"{TUNING}workers.py",
+                          "localization/tools/tune.py"),
                "foxglove-sdk": ("localization/ros/live_view.py",)}
 BRINGUP = {"nav2_map_server", "nav2_lifecycle_manager", "rviz2", "rviz_default_plugins"}
 #: keys rosdep has no Ubuntu 24.04 (noble) rule for: pip installs these
