@@ -4,7 +4,9 @@
   (``config/``, ``maps/``, ``launch/``, ``rviz/`` live there);
 - ``resolve_map_path(name_or_path)``: a YAML path as given, else a bare name (``stata_basement``)
   looked up in the package's ``maps/`` first, then ``$LOCALIZATION_MAPS_DIR``, then the shared
-  data directory's ``maps/``;
+  data directory's ``maps/`` (``map_not_found(name)``: the line naming every folder searched and
+  the maps available, when none has it);
+- ``parameter_files()``: the parameter files in the package's ``config/``, by name;
 - ``shared_dir()``: ``$LOCALIZATION_SHARED_DIR``, else ``../shared`` beside the checkout (the bags);
 - ``cache_dir()``: ``$LOCALIZATION_CACHE_DIR``, else ``$XDG_CACHE_HOME/localization``
   (``~/.cache/localization``): range tables, simulated bags;
@@ -59,17 +61,46 @@ def map_search_dirs() -> list[Path]:
     return dirs
 
 
-def resolve_map_path(name_or_path) -> Path:
-    """A map YAML path as given, or a bare map name looked up in ``map_search_dirs()`` (the first
-    that has ``NAME.yaml``; when none has it, the package's path, so the error names it)."""
+def is_map_name(name_or_path) -> bool:
+    """Whether ``--map`` got a bare map name (``stata_basement``), not a path to a YAML."""
     path = Path(name_or_path).expanduser()
-    if path.suffix in (".yaml", ".yml") or path.exists() or len(path.parts) > 1:
-        return path
+    return not (path.suffix in (".yaml", ".yml") or path.exists() or len(path.parts) > 1)
+
+
+def find_map(name: str) -> Path | None:
+    """``NAME.yaml`` in the first of ``map_search_dirs()`` that has it (None: in none)."""
     for folder in map_search_dirs():
-        candidate = folder / f"{name_or_path}.yaml"
+        candidate = folder / f"{name}.yaml"
         if candidate.is_file():
             return candidate
-    return package_maps_dir() / f"{name_or_path}.yaml"
+    return None
+
+
+def available_maps() -> dict[str, Path]:
+    """Every map a bare name finds: name -> YAML (the first folder of ``map_search_dirs()`` wins)."""
+    found: dict[str, Path] = {}
+    for folder in map_search_dirs():
+        if folder.is_dir():
+            for yaml in sorted(folder.glob("*.yaml")):
+                found.setdefault(yaml.stem, yaml)
+    return dict(sorted(found.items()))
+
+
+def map_not_found(name: str) -> str:
+    """One line for a bare map name no folder has: every folder searched, and the maps there are."""
+    folders = ", ".join(str(d) for d in map_search_dirs())
+    maps = ", ".join(available_maps()) or "none"
+    return (f"map {name!r} not found: no {name}.yaml in {folders} (set LOCALIZATION_MAPS_DIR for another folder, "
+            f"or give the YAML's path); maps available: {maps}")
+
+
+def resolve_map_path(name_or_path) -> Path:
+    """A map YAML path as given, or a bare map name looked up in ``map_search_dirs()`` (the first
+    that has ``NAME.yaml``; when none has it, the package's path: ``map_not_found`` says where else
+    it was looked for)."""
+    if not is_map_name(name_or_path):
+        return Path(name_or_path).expanduser()
+    return find_map(str(name_or_path)) or package_maps_dir() / f"{name_or_path}.yaml"
 
 
 def split_ros_args(argv) -> tuple[list[str], list[str]]:
@@ -90,6 +121,15 @@ def split_ros_args(argv) -> tuple[list[str], list[str]]:
         else:
             own.append(arg)
     return own, ros
+
+
+def parameter_files() -> list[str]:
+    """The names of the node parameter files in the package's ``config/`` (YAML files with a
+    ``ros__parameters`` section), sorted: what ``--params NAME`` accepts."""
+    folder = config_dir()
+    if not folder.is_dir():
+        return []
+    return sorted(p.stem for p in folder.glob("*.yaml") if "ros__parameters:" in p.read_text(errors="replace"))
 
 
 def resolve_params_path(name_or_path) -> Path:

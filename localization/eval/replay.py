@@ -63,6 +63,7 @@ from localization.core.localizer import Localizer
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.occupancy_map import load_map as load_occupancy_map
 from localization.core.parameters import Parameters
+from localization.core.paths import find_map, is_map_name, map_not_found
 from localization.eval import metrics as M
 from localization.eval.feed import START_FROM_EVENTS, START_GLOBAL, Feeder, InitialPose, make_scorer
 from localization.ros.conversions import (
@@ -181,6 +182,10 @@ class _Progress:
 
 
 def load_map(name_or_path) -> OccupancyMap:
+    """The map to localize in; ReplayError (one line) when it is missing or unreadable: a bare map name no
+    maps folder has names every folder searched and the maps available."""
+    if is_map_name(name_or_path) and find_map(str(name_or_path)) is None:
+        raise ReplayError(map_not_found(str(name_or_path)))
     try:
         return load_occupancy_map(name_or_path)
     except MapError as exc:

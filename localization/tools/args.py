@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from localization.core.parameters import BY_NAME, ParameterError, Parameters
-from localization.core.paths import resolve_params_path
+from localization.core.paths import find_map, is_map_name, map_not_found, parameter_files, resolve_params_path
 
 
 def floats(text: str, n: int | None = None) -> tuple:
@@ -33,17 +33,74 @@ def pose(text: str) -> tuple:
         raise argparse.ArgumentTypeError(f"expected X,Y,YAW (three numbers), got {text!r}") from None
 
 
+#: the argument types whose values may start with '-' (``--initial-pose -1,2,0``)
+NUMBER_TYPES = (floats, pose)
+#: a value of those types that argparse would take for an option: '-1,2,0', '-6.0,20.0,-2.24', '-1e-3,0,0',
+#: '-1,2;3,4' (waypoints)
+_NEGATIVE_NUMBERS = re.compile(r"-\.?\d[\d.eE+-]*(\s*[,;]\s*-?\.?\d[\d.eE+-]*)*")
+
+
+class Parser(argparse.ArgumentParser):
+    """The tools' argument parser: a number list starting with '-' is taken as the value of an option of
+    ``NUMBER_TYPES`` or added with ``numbers=True`` (``--initial-pose -1,2,0``, not only
+    ``--initial-pose=-1,2,0``), where argparse alone would read it as an unknown option. Everything else is
+    argparse's own."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._number_options: set = set()
+
+    def add_argument(self, *args, numbers: bool = False, **kwargs):
+        action = super().add_argument(*args, **kwargs)
+        if (numbers or kwargs.get("type") in NUMBER_TYPES) and action.nargs is None and action.option_strings:
+            self._number_options.update(action.option_strings)
+        return action
+
+    def parse_known_args(self, args=None, namespace=None):
+        argv = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(join_negative_values(argv, self._number_options), namespace)
+
+
+def join_negative_values(argv: list, options) -> list:
+    """``[..., OPTION, "-1,2,0", ...]`` -> ``[..., "OPTION=-1,2,0", ...]`` for each of ``options`` (up to a
+    ``--`` that ends the options)."""
+    out: list = []
+    k = 0
+    while k < len(argv):
+        arg = argv[k]
+        if arg == "--":
+            return out + argv[k:]
+        if arg in options and k + 1 < len(argv) and _NEGATIVE_NUMBERS.fullmatch(str(argv[k + 1])):
+            out.append(f"{arg}={argv[k + 1]}")
+            k += 2
+            continue
+        out.append(arg)
+        k += 1
+    return out
+
+
 IMAGE_SUFFIXES = (".png", ".pgm", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 def map_name_or_yaml(text: str) -> str:
-    """``--map``: a map_server YAML or a map name; the map's image is refused with the YAML to give."""
+    """``--map``: a map_server YAML or a map name; the map's image is refused with the YAML to give (a name
+    no maps folder has is refused when the map is loaded: ``load_map``)."""
     suffix = Path(text).suffix.lower()
     if suffix in IMAGE_SUFFIXES:
         stem = text[: -len(suffix)]
         raise argparse.ArgumentTypeError(f"{text} is the map's image: give its map_server YAML ({stem}.yaml) or "
                                          f"the map name ({Path(stem).name})")
     return text
+
+
+def load_map(name_or_path):
+    """The map of ``--map`` (``core.occupancy_map.load_map``); a bare name no maps folder has raises
+    MapError naming every folder searched and the maps available (``paths.map_not_found``)."""
+    from localization.core.occupancy_map import MapError
+    from localization.core.occupancy_map import load_map as load_occupancy_map
+    if is_map_name(name_or_path) and find_map(str(name_or_path)) is None:
+        raise MapError(map_not_found(str(name_or_path)))
+    return load_occupancy_map(name_or_path)
 
 
 def _float_from(text: str, allow_zero: bool) -> float:
@@ -133,7 +190,14 @@ def load_parameters(params_file, overrides: dict) -> Parameters:
 #: the car's parameter file in the package's config/ (the RSS 2022 RACECAR bags)
 REAL_PARAMS = "real_params"
 
-PARAMS_HELP = ("ROS 2 parameter file, or a name in the package's config/ (params, real_params); default: the "
+
+
+def params_names() -> str:
+    """The parameter files ``--params NAME`` accepts, for a help text: ``params, pioneer_params, ...``."""
+    return ", ".join(parameter_files()) or "none found"
+
+
+PARAMS_HELP = ("ROS 2 parameter file, or a name in the package's config/ (" + params_names() + "); default: the "
                "built-in defaults, or config/real_params.yaml when the bag has the car's odometry topic "
                "(/vesc/odom) and not /odom (said on stderr)")
 

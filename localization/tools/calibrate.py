@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 from localization.bags import BagError
-from localization.core.occupancy_map import MapError, load_map
+from localization.core.occupancy_map import MapError
 from localization.core.parameters import ParameterError
 from localization.eval.calibration import KEYS, CalibrationError, calibrate_bag
 from localization.eval.progress import busy
@@ -39,11 +39,11 @@ PROG = "localization-calibrate"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=PROG, description="Estimate odometry time offset, speed and yaw-rate scale, "
-                                 "yaw-rate bias, laser mount and lidar range scale from a bag and a map.",
-                                 epilog="Values starting with '-' need '=': --initial-pose=-6.0,20.0,-2.24")
+    ap = args_.Parser(prog=PROG, description="Estimate odometry time offset, speed and yaw-rate scale, yaw-rate "
+                      "bias, laser mount and lidar range scale from a bag and a map.")
     ap.add_argument("bag", type=Path, help="rosbag2 directory, .db3, .mcap or ROS 1 .bag")
-    ap.add_argument("--map", required=True, help="map_server YAML (or a map name in the maps directory)")
+    ap.add_argument("--map", required=True, type=args_.map_name_or_yaml,
+                    help="map_server YAML (or a map name in the maps directory)")
     ap.add_argument("--initial-pose", type=args_.pose, metavar="X,Y,YAW",
                     help="approximate start pose of base_link (map frame, to ~0.5 m / 0.3 rad); default: the bag's "
                          "/initialpose")
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
         params = args_.parameters_for_bags(args.params, {}, [args.bag], args.odom_topic, PROG)
         scan_topic, odom_topic = args.scan_topic or params.scan_topic, args.odom_topic or params.odom_topic
         check_bag_topics(args.bag, scan_topic, odom_topic)
-        occupancy_map = load_map(args.map)
+        occupancy_map = args_.load_map(args.map)
         mount = (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw)
         quiet = args.json or args.quiet
         with busy("calibrating", enabled=False if quiet else None) as say:  # a bar when stderr is a terminal

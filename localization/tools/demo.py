@@ -533,7 +533,7 @@ ONLY = ("heldout", "pioneer")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=PROG, description="Record (or reuse) the simulated Stata basement trials, "
+    ap = args_.Parser(prog=PROG, description="Record (or reuse) the simulated Stata basement trials, "
                                  "replay them and the real RSS 2022 bags, print the results table.")
     ap.add_argument("--out", type=Path, default=Path("demo-results"), help="where the replays' outputs go "
                     "(default ./demo-results; must be empty or new unless --overwrite)")

@@ -54,7 +54,7 @@ from collections.abc import Sequence
 from localization.bags import BagError, open_bag
 from localization.bags.writer import LATCHED_TOPICS
 from localization.core.paths import split_ros_args
-from localization.tools.args import map_name_or_yaml, non_negative_float, pose, positive_float
+from localization.tools.args import Parser, map_name_or_yaml, non_negative_float, pose, positive_float
 
 PROG = "localization-play"
 INITIAL_POSE_COVARIANCE = ((0.3 ** 2, 0.0, 0.0), (0.0, 0.3 ** 2, 0.0), (0.0, 0.0, 0.1 ** 2))  # m², m², rad²
@@ -62,13 +62,12 @@ DEFAULT_DEPTH = 100
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=PROG, description="Republish a ROS 1 or ROS 2 bag with rclpy at bag time / rate.")
+    p = Parser(prog=PROG, description="Republish a ROS 1 or ROS 2 bag with rclpy at bag time / rate.")
     p.add_argument("bag", nargs="?", help="ROS 1 .bag file, rosbag2 directory, or .db3/.mcap file")
     p.add_argument("--map", type=map_name_or_yaml, metavar="NAME_OR_YAML",
                    help="publish this map on /map, latched (a map name such as basement_fixed, or a YAML)")
     p.add_argument("--initial-pose", type=pose, metavar="X,Y,YAW",
-                   help="publish one initial pose on /initialpose (map frame; use --initial-pose=-1,2,0 for "
-                        "negative values)")
+                   help="publish one initial pose on /initialpose (map frame)")
     p.add_argument("--rate", type=positive_float, default=1.0, help="playback speed factor (1.0 = real time)")
     p.add_argument("--topics", nargs="+", metavar="T", help="publish only these topics (default: all)")
     p.add_argument("--start-delay", type=non_negative_float, default=1.0, metavar="S",
@@ -118,7 +117,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.bag is None and args.map is None and args.initial_pose is None:
         parser.error("give a BAG, --map or --initial-pose")
     if args.map is not None:
-        from localization.core.occupancy_map import MapError, load_map
+        from localization.core.occupancy_map import MapError
+        from localization.tools.args import load_map
         try:
             args.map_msg = load_map(args.map)
         except MapError as exc:

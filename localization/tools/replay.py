@@ -23,9 +23,8 @@ from localization.tools import args as args_
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=PROG, description="Replay a bag through the localizer as fast as possible "
-                                 "and measure how well it localizes.",
-                                 epilog="Values starting with '-' need '=': --initial-pose=-6.0,20.0,-2.24")
+    ap = args_.Parser(prog=PROG, description="Replay a bag through the localizer as fast as possible and measure "
+                      "how well it localizes.")
     ap.add_argument("bag", type=Path, help="rosbag2 directory, .db3, .mcap or ROS 1 .bag")
     ap.add_argument("--map", required=True, type=args_.map_name_or_yaml,
                     help="map_server YAML (or a map name in the maps directory)")

@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 
 from localization.core.occupancy_map import MapError
+from localization.core.paths import find_map, is_map_name, map_not_found
 from localization.eval.datasets import SIM_TRIALS
 from localization.sim import PHYSICS_RATE_HZ, DiffDriveModel, SimConfig, SimulationError, differential_trial, record
-from localization.tools.args import floats, pose
+from localization.tools.args import Parser, floats, map_name_or_yaml, pose
 
 PROG = "localization-simulate"
 
@@ -34,11 +35,10 @@ def _waypoints(text: str) -> tuple:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog=PROG, description="Simulate the MIT RACECAR (or a differential-drive base) driving a route in a map "
                                "and record a rosbag2 bag (/scan, /odom, ground truth /tf, /tf_static, /initialpose).",
-        epilog=f"trials: {', '.join(SIM_TRIALS)}. Example: {PROG} out_bag --trial trial2_noise0.3. "
-               "Values starting with '-' need '=': --start=-6.0,20.0,-2.24")
+        epilog=f"trials: {', '.join(SIM_TRIALS)}. Example: {PROG} out_bag --trial trial2_noise0.3.")
     ap.add_argument("out", type=Path, help="bag directory to write (must not exist unless --overwrite)")
     ap.add_argument("--trial", choices=sorted(SIM_TRIALS), help="start from a predefined trial "
                     "(route, start, speed, noise); other options override it")
@@ -46,9 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the vehicle: ackermann (the car, default) or differential (turns on the spot, wheel-encoder "
                          "odometry at 20 Hz, 10 Hz lidar; without --trial it drives the differential trial's route "
                          "in the Stata basement)")
-    ap.add_argument("--map", help="map name or YAML (default stata_basement)")
+    ap.add_argument("--map", type=map_name_or_yaml, help="map name or YAML (default stata_basement)")
     ap.add_argument("--start", type=pose, metavar="X,Y,YAW", help="true start pose")
-    ap.add_argument("--waypoints", type=_waypoints, metavar="'X,Y;X,Y;...'|FILE", help="route to drive")
+    ap.add_argument("--waypoints", type=_waypoints, numbers=True, metavar="'X,Y;X,Y;...'|FILE",
+                    help="route to drive")
     ap.add_argument("--closed", action="store_true", default=None, help="the route is a loop (needs --duration)")
     ap.add_argument("--speed", type=float, help="cruise speed m/s (max 8)")
     ap.add_argument("--duration", type=float, help="seconds (default: until the end of the route)")
@@ -96,6 +97,8 @@ def config_from_args(args) -> SimConfig:
     cfg = replace(cfg, **changes)
     if not cfg.waypoints:
         raise SimulationError("no route: give --trial or --waypoints")
+    if is_map_name(cfg.map) and find_map(str(cfg.map)) is None:
+        raise SimulationError(map_not_found(str(cfg.map)))
     if cfg.closed and cfg.duration is None:
         raise SimulationError("a closed route needs --duration")
     if (cfg.kidnap_at is None) != (cfg.kidnap_to is None):

@@ -63,14 +63,14 @@ PROG = "localization-tune"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=PROG, description="Tune the localizer's parameters from recorded bags "
-                                 "(Optuna: local worker processes or a shared study storage).",
-                                 epilog="Values starting with '-' need '=': --initial-pose=-6.0,20.0,-2.24")
+    ap = args_.Parser(prog=PROG, description="Tune the localizer's parameters from recorded bags (Optuna: local "
+                      "worker processes or a shared study storage).")
     ap.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="rosbag2 directory, .db3, .mcap or ROS 1 .bag")
-    ap.add_argument("--map", required=True, help="map_server YAML (or a map name in the maps directory)")
-    ap.add_argument("--params", help="starting parameter file, or a name in the package's config/ (params, "
-                    "real_params); default: the built-in defaults, or config/real_params.yaml when the bags have the "
-                    "car's odometry topic (/vesc/odom) and not /odom (said on stderr)")
+    ap.add_argument("--map", required=True, type=args_.map_name_or_yaml,
+                    help="map_server YAML (or a map name in the maps directory)")
+    ap.add_argument("--params", help="starting parameter file, or a name in the package's config/ ("
+                    + args_.params_names() + "); default: the built-in defaults, or config/real_params.yaml when the "
+                    "bags have the car's odometry topic (/vesc/odom) and not /odom (said on stderr)")
     ap.add_argument("--space", help="search space YAML (default: the package's config/tune_space.yaml)")
     ap.add_argument("--trials", type=_at_least_one, default=40,
                     help="trials to run now, at least 1 (added to the study's; default 40)")
