@@ -131,6 +131,61 @@ def max_jump(poses) -> float:
     return float(np.hypot(*np.diff(p[:, :2], axis=0).T).max())
 
 
+SETTLED_AGREEMENT = 0.8  # a global start has settled at the first scan with this scan–map agreement
+
+
+def settled_time(from_pose: bool, t_start: float, agreement_t, agreement,
+                 threshold: float = SETTLED_AGREEMENT) -> float | None:
+    """When a run's estimates start to count as tracking (the time, scan clock): ``t_start`` after a start
+    pose (``from_pose``); after a global start the first scan whose estimate fits the map (agreement ≥
+    ``threshold``), since the estimates before are the mean of a spread cloud converging; None: never."""
+    if from_pose:
+        return t_start
+    a = np.asarray(agreement, dtype=float)
+    hit = np.flatnonzero(np.nan_to_num(a, nan=-1.0) >= threshold)
+    return float(np.asarray(agreement_t, dtype=float)[hit[0]]) if hit.size else None
+
+
+def jump_figures(est_t, est_poses, settled: float | None, t_start: float, from_pose: bool) -> dict:
+    """The largest jump between consecutive estimates once settled (``settled_time``; a start pose: every
+    estimate), when it counts from (s after ``t_start``) and over every estimate including the convergence."""
+    t = np.asarray(est_t, dtype=float)
+    poses = np.asarray(est_poses, dtype=float).reshape(-1, 3)
+    every = max_jump(poses)
+    if from_pose:
+        return {"max_jump_m": every, "max_jump_from_s": 0.0, "max_jump_counts": "from the start pose",
+                "max_jump_with_convergence_m": every}
+    if settled is None:
+        return {"max_jump_m": None, "max_jump_from_s": None,
+                "max_jump_counts": f"no scan fitted the map (agreement >= {SETTLED_AGREEMENT}) after the global start",
+                "max_jump_with_convergence_m": every}
+    return {"max_jump_m": max_jump(poses[t >= settled]), "max_jump_from_s": float(settled - t_start),
+            "max_jump_counts": f"from the first scan fitting the map (agreement >= {SETTLED_AGREEMENT}) after the "
+                               "global start",
+            "max_jump_with_convergence_m": every}
+
+
+#: how the yardstick's scans split (``yardstick_partition``), each scan in exactly one part, in this order
+YARDSTICK_PARTS = {"scored": "scored",
+                   "confident_unscored": "confident but no estimate then",
+                   "not_confident": "matched but not confident",  # ambiguous, uncertain, off the free space, poor fit
+                   "rejected": "matched but rejected",  # the smoothed track disagrees with the match
+                   "unmatched": "unmatched"}
+
+
+def yardstick_partition(good, usable, accepted, scored: int) -> dict:
+    """The yardstick's scans split so that the parts add up to the scans: ``scored`` (confident and compared
+    with an estimate: at most the confident ones), confident but not compared, then the others by how far
+    their match got (accepted into the track, matched but rejected, not matched)."""
+    good, usable, accepted = (np.asarray(x, dtype=bool) for x in (good, usable, accepted))
+    scored = min(int(scored), int(good.sum()))
+    other = ~good
+    return {"scored": scored, "confident_unscored": int(good.sum()) - scored,
+            "not_confident": int((other & usable & accepted).sum()),
+            "rejected": int((other & usable & ~accepted).sum()),
+            "unmatched": int((other & ~usable).sum())}
+
+
 # --------------------------------------------------------------------------------------------
 # Scan–map agreement (truth-free)
 # --------------------------------------------------------------------------------------------

@@ -1,54 +1,7 @@
-"""``localization-replay``: run the localizer over a recorded bag as fast as the CPU allows.
-
-Usage::
-
-    localization-replay BAG --map MAP.yaml [--params FILE] [--out DIR] [--initial-pose X,Y,YAW]
-                        [--global] [--seed N] [--scan-topic T] [--odom-topic T] [--truth-topic T]
-                        [--particles N] [-p NAME=VALUE ...] [--no-plots] [--progress/--no-progress]
-
-``BAG``: a rosbag2 directory (sqlite3 or MCAP), a bare ``.db3`` / ``.mcap`` file, or a ROS 1
-``.bag``. Every scan, odometry and initial-pose message goes, in bag-time order, through exactly
-what the node does with it: the duck-typed converters of ``localization.conversions`` and the
-``Localizer`` (``on_odometry``, ``on_scan``, ``set_initial_pose``), fed by the one loop the tuner
-and the benchmarks use too (``localization.eval.feed``). Stamps come from the messages, so the
-result does not depend on how fast the replay runs.
-
-Initial pose: ``--initial-pose``, else every ``/initialpose`` message of the bag (as the node
-would receive it), else global localization (``--global`` forces it).
-
-Ground truth (optional): TF ``map -> base_link`` on ``/tf`` (what ``localization-simulate``
-records, like the racecar simulator), or ``--truth-topic`` carrying nav_msgs/Odometry,
-geometry_msgs/PoseStamped, PoseWithCovarianceStamped or tf2_msgs/TFMessage. A simulated bag's /tf is
-the truth in the map frame (``localization.sim.perturb``: q = c + (p − c) / s, what the map shows where
-the car is); a bag drawn from a perturbed world also carries the world-frame truth on ``/truth/world``,
-scored as the second figure ``world_ct_error_m``.
-
-Outputs in ``--out`` (default: a new ``replay-<bag>-<time>`` folder in the current directory):
-
-- ``poses.csv``: ``t,x,y,theta``, one row per estimate the node would publish: the pose carried to
-  each odometry message's time, and a sensor-corrected estimate when it is newer than the row
-  before (t, scan clock, never goes backwards);
-- ``corrections.csv``: ``t,x,y,theta``, every sensor-corrected estimate at its scan's time;
-- ``metrics.json``: CT error statistics, heading error, time to converge and false recoveries
-  (``metrics.false_recoveries``) (with truth; ``world_ct_error_m`` against the world-frame truth),
-  scan–map agreement, update timing, effective update rate (see ``localization.metrics``);
-- ``agreement.csv`` (and ``errors.csv`` with truth): the time series behind the figures (agreement
-  of the estimate at each scan's time, t = that time on the scan clock, ``localization.eval.feed``);
-- ``trajectory.png`` (map, truth, estimate) and ``error.png`` (errors and agreement vs time);
-- with a reference track (``--reference``; by default when the bag has no ground truth): the
-  estimate at each scan's time scored against every scan matched to the map
-  (``localization.eval.reference``; ``published_*``: the poses as published, interpolated):
-  ``reference_error_m``, ``along_track_error_m``, ``cross_track_error_m``, ``best_lag_s`` ... in
-  metrics.json, and ``reference.png`` (along/cross-track error vs time).
-
-Exit status: 0 success; 1 when the bag, map, parameters or a topic are missing or unusable
-(one line ``localization-replay: error: ...`` on stderr); 2 bad command-line arguments.
-"""
+"""Running a replay: the bag's messages through the ``Localizer`` in bag-time order, collecting estimates,
+truth, agreement, timing and the yardstick (``localization.eval.replay``, the package's docstring)."""
 from __future__ import annotations
 
-import csv
-import json
-import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -58,13 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from localization.bags import BagError, open_bag
-from localization.core.geometry import wrap_angle, yaw_of
+from localization.core.geometry import yaw_of
 from localization.core.localizer import Localizer
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.occupancy_map import load_map as load_occupancy_map
 from localization.core.parameters import Parameters
 from localization.core.paths import find_map, is_map_name, map_not_found
-from localization.eval import metrics as M
 from localization.eval.feed import START_FROM_EVENTS, START_GLOBAL, Feeder, InitialPose, make_scorer
 from localization.ros.conversions import (
     pose_from_msg,
@@ -135,6 +87,7 @@ class ReplayResult:
     particles_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # after each sensor update
     particles: np.ndarray = field(default_factory=lambda: np.zeros(0))  # particle count (adaptive_particles)
     reference: object | None = None  # localization.eval.reference.ReferenceTrack, when computed
+    reference_problem: str | None = None  # why the yardstick could not be computed (reference asked for)
     corrected_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # s, scan clock: each correction's scan time
     corrected_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # every sensor-corrected estimate
     scan_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # s, scan clock: each scan's time
@@ -358,23 +311,35 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         order = np.argsort(wt, kind="stable")
         res.world_truth_t, res.world_truth_poses = wt[order], np.asarray(world_truth[2], dtype=float)[order]
     if opts.reference or (opts.reference is None and not res.has_truth):
-        from localization.eval.progress import busy
-        from localization.eval.reference import reference_for_bag
-        try:
-            with busy("reference track", enabled=opts.progress) as say:  # the pass after the replay's bar
-                res.reference = reference_for_bag(
-                    opts.bag, occupancy_map, scan_topic,
-                    (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
-                    odom_topic=opts.odom_topic or opts.params.odom_topic, odom_frame=params.odom_frame,
-                    base_frame=params.base_frame,
-                    initial_pose=log.initial_pose, range_scale=params.lidar_scale_to_map_scale,
-                    wall_depth=params.map_wall_depth, scan_stamp=params.scan_stamp,
-                    scan_stamp_offset=params.scan_stamp_offset,
-                    log=say if opts.progress else None)
-        except BagError as exc:
-            raise ReplayError(str(exc)) from None
+        res.reference, res.reference_problem = _reference(opts, res, occupancy_map, params, scan_topic)
         res.wall_time = time.perf_counter() - t_wall0
     return res
+
+
+def _reference(opts: ReplayOptions, res: ReplayResult, occupancy_map, params: Parameters, scan_topic: str):
+    """The yardstick of the replayed bag (``localization.eval.reference``): (track or None, why not).
+    Its own "nothing to score" lines are kept so that a yardstick with no scored scan can say why."""
+    from localization.eval.progress import busy
+    from localization.eval.reference import reference_for_bag
+    said: list = []
+    try:
+        with busy("reference track", enabled=opts.progress) as say:  # the pass after the replay's bar
+            def note(line: str) -> None:
+                said.append(line)
+                if opts.progress:
+                    say(line)
+            ref = reference_for_bag(
+                opts.bag, occupancy_map, scan_topic,
+                (params.laser_offset_x, params.laser_offset_y, params.laser_offset_yaw),
+                odom_topic=opts.odom_topic or opts.params.odom_topic, odom_frame=params.odom_frame,
+                base_frame=params.base_frame,
+                initial_pose=res.initial_pose, range_scale=params.lidar_scale_to_map_scale,
+                wall_depth=params.map_wall_depth, scan_stamp=params.scan_stamp,
+                scan_stamp_offset=params.scan_stamp_offset, log=note)
+    except (BagError, ValueError) as exc:
+        return None, f"the yardstick could not start: {exc}"
+    why = [line.split(":", 1)[1].strip() for line in said if line.startswith("reference track:")]
+    return ref, (why[-1] if why else None)
 
 
 def bag_events(bag, topics, scan_topic: str, odom_topic: str, init_topic: str | None, truth_topic: str | None,
@@ -429,81 +394,6 @@ def _collect_truth(msg, msgtype: str, parent: str, child: str, out_t: list, out_
         out_p.append(tuple(pose_from_msg(msg.pose)))
 
 
-# --------------------------------------------------------------------------------------------
-# Metrics and outputs
-# --------------------------------------------------------------------------------------------
-
-
-def compute_metrics(res: ReplayResult) -> dict:
-    p = res.options.params
-    out = {
-        "bag": str(res.bag_path),
-        "map": str(res.map_path),
-        "scan_topic": res.scan_topic,
-        "odom_topic": res.odom_topic,
-        "num_particles": p.num_particles,
-        "num_beams_per_particle": p.num_beams_per_particle,
-        "ray_caster": p.ray_caster,
-        "random_seed": p.random_seed,
-        "initial_pose_source": res.initial_pose_source,
-        "initial_pose": None if res.initial_pose is None else [float(v) for v in res.initial_pose],
-        "estimates": int(len(res.est_t)),
-        **{k: int(v) for k, v in res.counts.items()},
-        "bag_duration_s": res.bag_duration,
-        "wall_time_s": res.wall_time,
-        "realtime_factor": res.bag_duration / res.wall_time if res.wall_time > 0 else None,
-        "sensor_update_ms": M.timing_stats(res.sensor_times),
-        "motion_update_ms": M.timing_stats(res.motion_times),
-        # sensor updates per second of filter time (all on_scan + on_odometry calls): the scan
-        # rate this filter could keep up with live on this CPU
-        "effective_update_rate_hz": (res.counts["sensor_updates"] / res.filter_time) if res.filter_time > 0 else None,
-        "scan_map_agreement": M.agreement_stats(res.agreement),
-        "agreement_tolerance_m": M.AGREEMENT_TOLERANCE_M,
-        "max_jump_m": M.max_jump(res.est_poses),
-        "has_truth": res.has_truth,
-        "truth_source": res.truth_source,
-        "laser_source": res.laser_source,
-        "laser_offset": [float(v) for v in (res.laser_offset or (p.laser_offset_x, p.laser_offset_y,
-                                                                  p.laser_offset_yaw))],
-        "health": M.agreement_stats(res.health),  # the filter's own health figure (fast average)
-        "sensor_model": p.sensor_model,
-        "adaptive_particles": p.adaptive_particles,
-        # particle count over the sensor updates (changes with adaptive_particles and global spreads)
-        "particles": ({"min": int(res.particles.min()), "median": float(np.median(res.particles)),
-                       "mean": float(res.particles.mean()), "max": int(res.particles.max())}
-                      if res.particles.size else None),
-    }
-    if res.has_truth:
-        cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
-        out["ct_error_m"] = M.error_stats(cmp.ct_error)
-        out["heading_error_mean_abs_rad"] = float(cmp.heading_error.mean()) if cmp.heading_error.size else None
-        t_start = res.init_t if res.init_t is not None else (float(res.est_t[0]) if len(res.est_t) else None)
-        out["time_to_converge_s"] = M.time_to_converge(cmp.t, cmp.ct_error, M.CONVERGENCE_THRESHOLD_M, t_start)
-        if res.initial_pose is not None and len(res.truth_t):
-            truth0 = M.interpolate_poses([res.init_t], res.truth_t, res.truth_poses)[0]
-            if np.all(np.isfinite(truth0)):
-                out["initial_pose_error_m"] = float(np.hypot(*(np.asarray(res.initial_pose)[:2] - truth0[:2])))
-                out["initial_pose_heading_error_rad"] = float(abs(wrap_angle(res.initial_pose[2] - truth0[2])))
-        out["converge_threshold_m"] = M.CONVERGENCE_THRESHOLD_M
-        out["scored_estimates"] = int(cmp.t.size)
-        # switches to a place > 1 m from the (map-frame) truth after the first second
-        out["false_recoveries"] = M.false_recoveries(cmp.t, cmp.ct_error, t_start=t_start)
-        if len(res.world_truth_t):  # a perturbed world: the error against the car's pose in the world as well
-            world = M.compare_to_truth(res.est_t, res.est_poses, res.world_truth_t, res.world_truth_poses)
-            out["world_ct_error_m"] = M.error_stats(world.ct_error)
-        from localization.eval.reference import truth_decomposition  # along-/cross-track vs truth
-        out.update(truth_decomposition(res.est_t, res.est_poses, res.truth_t, res.truth_poses))
-    if res.reference is not None:
-        from localization.eval.reference import reference_metrics
-        # the reference is per scan, at the scan's time: compared with the estimate at that time
-        out.update(reference_metrics(res.reference, res.scan_t, res.scan_poses,
-                                     res.truth_t if res.has_truth else None, res.truth_poses))
-        published = reference_metrics(res.reference, res.est_t, res.est_poses)  # the poses as published
-        out["published_reference_error_m"] = published["reference_error_m"]
-        out["published_along_track_error_m"] = published["along_track_error_m"]
-    return out
-
-
 def bag_label(bag) -> str:
     """A short name for a bag path (the folder's parent for the cache's ``<trial>-<key>/bag``)."""
     p = Path(bag).expanduser().resolve()
@@ -519,126 +409,3 @@ def default_out_dir(bag: Path) -> Path:
         k += 1
         out = Path(f"{base}-{k}")
     return out
-
-
-def _write_poses(path: Path, stamps, poses) -> Path:
-    """One pose per row: t (s, scan clock), x, y (m), theta (rad)."""
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["t", "x", "y", "theta"])
-        for t, (x, y, th) in zip(stamps, poses):
-            w.writerow([f"{t:.6f}", f"{x:.5f}", f"{y:.5f}", f"{th:.6f}"])
-    return path
-
-
-def write_outputs(res: ReplayResult, metrics: dict, out_dir: Path, plots: bool = True) -> dict:
-    """poses.csv, corrections.csv, metrics.json, agreement.csv, errors.csv (with truth), trajectory.png, error.png."""
-    out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ReplayError(f"cannot create output folder {out_dir}: {exc}") from None
-    files = {}
-    files["poses"] = _write_poses(out_dir / "poses.csv", res.est_t, res.est_poses)
-    files["corrections"] = _write_poses(out_dir / "corrections.csv", res.corrected_t, res.corrected_poses)
-    with open(out_dir / "agreement.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["t", "agreement"])
-        for t, a in zip(res.agreement_t, res.agreement):
-            w.writerow([f"{t:.6f}", f"{a:.4f}"])
-    cmp = None
-    if res.has_truth:
-        cmp = M.compare_to_truth(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
-        with open(out_dir / "errors.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["t", "ct_error", "heading_error"])
-            for t, e, h in zip(cmp.t, cmp.ct_error, cmp.heading_error):
-                w.writerow([f"{t:.6f}", f"{e:.5f}", f"{h:.6f}"])
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    files["metrics"] = out_dir / "metrics.json"
-    if plots:
-        from localization.eval.plots import plot_errors, plot_trajectory
-        from localization.eval.reference import track_errors
-        title = res.options.label or bag_label(res.bag_path)
-        files["trajectory"] = plot_trajectory(out_dir / "trajectory.png", res.occupancy_map, res.est_poses,
-                                              res.truth_poses if res.has_truth else None, res.initial_pose,
-                                              title=title, reference_poses=None if res.reference is None
-                                              else res.reference.good_track()[1])
-        t0 = res.init_t if res.init_t is not None else (
-            float(res.est_t[0]) if len(res.est_t) else (float(res.agreement_t[0]) if len(res.agreement_t) else 0.0))
-        files["error"] = plot_errors(out_dir / "error.png", t0,
-                                     cmp.t if cmp is not None else None, cmp.ct_error if cmp is not None else None,
-                                     cmp.heading_error if cmp is not None else None,
-                                     res.agreement_t, res.agreement, title=title,
-                                     particles_t=res.particles_t, particles=res.particles,
-                                     track=track_errors(res.est_t, res.est_poses, res.truth_t, res.truth_poses)
-                                     if res.has_truth else None)
-        if res.reference is not None:
-            from localization.eval.reference import plot_reference
-            files["reference"] = plot_reference(out_dir / "reference.png", res.reference, res.est_t, res.est_poses,
-                                                 t0, title=title)
-    return files
-
-
-def _fmt(v, spec=".3f", unit=""):
-    return "n/a" if v is None else f"{v:{spec}}{unit}"
-
-
-def summary_table(metrics: dict, out_dir: Path | None = None) -> str:
-    m = metrics
-    rows = [("bag", m["bag"]),
-            ("initial pose", m["initial_pose_source"]),
-            ("messages", f"{m['scans']} scans, {m['odometry']} odometry -> {m['estimates']} estimates "
-                         f"({m['sensor_updates']} sensor updates)")]
-    if m.get("has_truth"):
-        ct = m["ct_error_m"]
-        rows += [("CT error (m)", f"mean {_fmt(ct['mean'])}  median {_fmt(ct['median'])}  p95 {_fmt(ct['p95'])}  "
-                                  f"max {_fmt(ct['max'])}  rms {_fmt(ct['rms'])}"),
-                 ("heading error", "mean |err| " + _fmt(
-                     None if m["heading_error_mean_abs_rad"] is None else math.degrees(m["heading_error_mean_abs_rad"]),
-                     ".2f", " deg")),
-                 ("converged", ("never" if m["time_to_converge_s"] is None else "at the first estimate"
-                                if m["time_to_converge_s"] < 0.05 else f"after {m['time_to_converge_s']:.2f} s")
-                  + f" (below {m['converge_threshold_m']} m for good, from the initial pose"
-                  + (f" {m['initial_pose_error_m']:.2f} m / {m['initial_pose_heading_error_rad']:.2f} rad off)"
-                     if "initial_pose_error_m" in m else ")"))]
-    if m.get("reference_error_m") is not None:
-        r, al, cr = m["reference_error_m"], m["along_track_error_m"], m["cross_track_error_m"]
-        rows += [("vs reference track", f"median {_fmt(r['median'])}  p95 {_fmt(r['p95'])}  max {_fmt(r['max'])} m "
-                                        f"({m['reference_scored']} scans scored, {m['reference_ambiguous']} ambiguous, "
-                                        f"{m['reference_low_score']} unmatched/low score)"),
-                 ("along / cross track", f"along mean {_fmt(al['mean'])} median {_fmt(al['median'])}; "
-                                         f"cross mean {_fmt(cr['mean'])} median {_fmt(cr['median'])} m; "
-                                         f"best lag {_fmt(m['best_lag_s'], '.3f', ' s')}")]
-        if m.get("reference_vs_truth_m"):
-            rows.append(("reference vs truth", f"median {_fmt(m['reference_vs_truth_m']['median'], '.4f')} m"))
-    if m.get("truth_along_track_error_m") is not None:
-        al, cr = m["truth_along_track_error_m"], m["truth_cross_track_error_m"]
-        rows.append(("along / cross vs truth", f"along mean {_fmt(al['mean'])} median {_fmt(al['median'])}; "
-                                               f"cross mean {_fmt(cr['mean'])} median {_fmt(cr['median'])} m"))
-    ag = m["scan_map_agreement"]
-    rows += [("scan-map agreement", f"median {_fmt(ag['median'])}  mean {_fmt(ag['mean'])}  p05 {_fmt(ag['p05'])}"),
-             ("filter health", f"median {_fmt((m.get('health') or {}).get('median'))}  "
-                               f"min {_fmt((m.get('health') or {}).get('min'))}; "
-                               f"{m.get('recoveries', 0)} recoveries (switches and re-spreads), "
-                               f"{m.get('refused_jumps', 0)} updates undone (a jump to a worse fit)"),
-             ("max jump", f"{m['max_jump_m']:.3f} m between consecutive estimates"),
-             ("sensor update", f"median {_fmt(m['sensor_update_ms']['median_ms'], '.1f')} ms, "
-                               f"p95 {_fmt(m['sensor_update_ms']['p95_ms'], '.1f')} ms "
-                               + ("(adaptive particles" if m.get("adaptive_particles")
-                                  else f"({m['num_particles']} particles")
-                               + f" x {m['num_beams_per_particle']} beams, "
-                               + (f"{m['ray_caster']})" if m.get("sensor_model", "beam") == "beam"
-                                  else f"{m['sensor_model']})")),
-             ("particles", "n/a" if not m.get("particles") else
-              f"min {m['particles']['min']}  median {m['particles']['median']:.0f}  max {m['particles']['max']}"
-              + (" (adaptive, KLD)" if m.get("adaptive_particles") else "")),
-             ("motion update", f"median {_fmt(m['motion_update_ms']['median_ms'], '.2f')} ms, "
-                               f"p95 {_fmt(m['motion_update_ms']['p95_ms'], '.2f')} ms"),
-             ("update rate", f"{_fmt(m['effective_update_rate_hz'], '.1f')} Hz effective; "
-                             f"{_fmt(m['realtime_factor'], '.2f')}x real time "
-                             f"({m['bag_duration_s']:.1f} s of bag in {m['wall_time_s']:.1f} s)")]
-    if out_dir is not None:
-        rows.append(("outputs", str(out_dir)))
-    width = max(len(k) for k, _ in rows)
-    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
