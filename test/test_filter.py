@@ -12,7 +12,7 @@ from localization.core.parameters import ParameterError, Parameters
 from localization.core.paths import config_dir
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
-from localization.sensor_model import SensorModel
+from localization.core.sensors.beam import BeamModel as SensorModel
 
 
 @pytest.fixture(scope="module")

@@ -18,10 +18,10 @@ from localization.core.raycast.exact import ExactRayCaster
 from localization.core.recovery import SwitchGlide, is_jump
 from localization.core.scan import ScanData
 from localization.core.scan_step import StepOutcome
+from localization.core.sensors.beam import BeamModel as SensorModel
 from localization.core.timeline import PoseEstimate
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder
-from localization.sensor_model import SensorModel
 from localization.sim import simulate
 
 ANGLES = np.linspace(-2.356, 2.356, 1081)

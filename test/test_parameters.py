@@ -13,8 +13,8 @@ from localization.core.localizer import build_filter
 from localization.core.motion import MotionModel, MotionNoiseParams
 from localization.core.parameters import BY_NAME, COURSE_DEFAULTS, ParameterError, Parameters, default
 from localization.core.raycast import LookupTableRayCaster
+from localization.core.sensors.beam import BeamModel as SensorModel
 from localization.core.sensors.beam import BeamModelParams
-from localization.sensor_model import SensorModel
 
 STRUCTS = {BeamModelParams: "", MotionNoiseParams: "motion_"}
 

@@ -26,7 +26,7 @@ from localization.core.raycast import table_cache as table_cache_module
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.raycast.lookup_table import LookupTableRayCaster
 from localization.core.raycast.table_cache import cache_file_name
-from localization.sensor_model import SensorModel
+from localization.core.sensors.beam import BeamModel as SensorModel
 
 ROOT = Path(__file__).resolve().parents[1]
 BEAMS_270 = np.linspace(-2.356, 2.356, 60)

@@ -7,7 +7,7 @@ from localization.core.geometry import compose
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData, downsample_scan
-from localization.sensor_model import SensorModel
+from localization.core.sensors.beam import BeamModel as SensorModel
 
 
 def test_table_shape_and_columns_normalised():

@@ -1,15 +1,15 @@
-"""Every parameter of the localizer, declared once: name, default, description, check.
+"""Every parameter of the localizer, declared once: name, default, one-line description, rule, group.
 
-The node declares exactly these as ROS parameters; ``localization-replay`` and the simulator
-read the same names from a ROS 2 parameter file (``config/params.yaml``,
-``config/real_params.yaml``). ``Parameters`` is a plain, validated mapping (no ROS).
+The node declares exactly these as ROS parameters; ``localization-replay``, the simulator and the tools read
+the same names from a ROS 2 parameter file (``config/*.yaml``). ``Parameters`` is a plain, validated mapping
+(no ROS). ``help_text()`` is ``particle_filter --help``'s list; ``markdown()`` is docs/node.md's table.
 """
 from __future__ import annotations
 
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,22 +23,15 @@ class Param:
     description: str
     check: Callable[[Any], bool] | None = None
     rule: str = ""
-
-
-def _positive(v):
-    return isinstance(v, (int, float)) and math.isfinite(v) and v > 0
-
-
-def _non_negative(v):
-    return isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
-
-
-def _fraction(v):
-    return isinstance(v, (int, float)) and 0.0 <= v <= 1.0
+    group: str = ""  # one of GROUPS
 
 
 def _finite(v):
     return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _positive(v):
+    return _finite(v) and v > 0
 
 
 def _topic(v):
@@ -49,345 +42,227 @@ def _one_of(*options):
     return lambda v: v in options
 
 
-def _alpha(v):
-    return _finite(v) and (v >= 0 or v == -1)
-
-
 #: robot_model_type's accepted names -> the motion model's robot model (core/motion.py ROBOT_MODELS); nav2_amcl's
 #: plugin names (Humble and later) and its earlier short names included
-ROBOT_MODEL_TYPES = {
-    "ackermann": "ackermann",
-    "differential": "differential",
-    "omni": "omni",
-    "omnidirectional": "omni",
-    "nav2_amcl::DifferentialMotionModel": "differential",
-    "nav2_amcl::OmniMotionModel": "omni",
+ROBOT_MODEL_TYPES = {"ackermann": "ackermann", "differential": "differential", "omni": "omni",
+                     "omnidirectional": "omni", "nav2_amcl::DifferentialMotionModel": "differential",
+                     "nav2_amcl::OmniMotionModel": "omni"}
+
+
+#: The groups, in the order ``particle_filter --help`` and docs/node.md list them: name -> what it holds.
+GROUPS = {
+    "topics and frames": "where the node reads and writes, and the TF frames it uses",
+    "robot": "the base's kinematics and motion noise, the lidar and its mount",
+    "odometry calibration": "how odometry is corrected, timed and checked (localization-calibrate measures it)",
+    "sensor model": "how a scan is scored against the map",
+    "filter": "particle count, resampling, when a scan updates the filter, the initial pose",
+    "recovery": "global localization, the scan-map health check, and what the filter does when lost",
+    "performance": "ray casting and threading: speed and memory",
+    "output": "what the node publishes, warns about and saves",
 }
 
 
-PARAMETERS = [
-    # --- topics and frames
-    Param("map_topic", "/map", "nav_msgs/OccupancyGrid input (reliable, transient local)", _topic, "a topic name"),
-    Param("scan_topic", "/scan", "sensor_msgs/LaserScan input (sensor-data QoS)", _topic, "a topic name"),
-    Param("odom_topic", "/odom", "nav_msgs/Odometry input: twist x dt moves the particles", _topic, "a topic name"),
-    Param("initialpose_topic", "/initialpose", "geometry_msgs/PoseWithCovarianceStamped input", _topic, "a topic name"),
-    Param("map_frame", "map", "the fixed frame of the map and of every output", _topic, "a frame id"),
-    Param("odom_frame", "odom", "odometry frame (used when publish_tf is map_to_odom)", _topic, "a frame id"),
-    Param("particle_filter_frame", "base_link_pf", "child frame of the estimate (Odometry and TF)", _topic,
-          "a frame id"),
-    Param("publish_tf", "map_to_particle_filter_frame", "which transform to broadcast: map_to_particle_filter_frame, "
-          "map_to_odom (REP-105, on the car) or none",
+def _grouped(*items) -> list:
+    """The table: each Param joins the group whose name comes before it."""
+    params, group = [], None
+    for item in items:
+        if isinstance(item, str):
+            if item not in GROUPS:
+                raise ValueError(f"unknown parameter group {item!r}")
+            group = item
+        else:
+            params.append(replace(item, group=group))
+    return params
+
+
+def _int(low: int, high: int | None = None):  # (check, rule) of an integer in [low, high]
+    if high is None:
+        return (lambda v: isinstance(v, int) and v >= low), f"an integer >= {low}"
+    return (lambda v: isinstance(v, int) and low <= v <= high), f"an integer in [{low}, {high}]"
+
+
+#: (check, rule) pairs the table shares
+_TOPIC, _FRAME = (_topic, "a topic name"), (_topic, "a frame id")
+_BOOL = (lambda v: isinstance(v, bool), "true or false")
+_FIN, _POS, _NONNEG = (_finite, "finite"), (_positive, "> 0"), (lambda v: _finite(v) and v >= 0, ">= 0")
+_FRAC, _RATE = (lambda v: _finite(v) and 0 <= v <= 1, "in [0, 1]"), (lambda v: _finite(v) and 0 < v <= 1, "in (0, 1]")
+_ALPHA = (lambda v: _finite(v) and (v >= 0 or v == -1), "-1 (not set) or >= 0")
+_SECONDS = (lambda v: _finite(v) and abs(v) <= 1, "in [-1, 1]")
+_METRES = (lambda v: _positive(v) and v <= 1, "> 0 and <= 1 (metres)")
+_HALF = (lambda v: _finite(v) and 0 <= v <= 0.5, "in [0, 0.5]")
+
+
+PARAMETERS = _grouped(
+    "topics and frames",
+    Param("map_topic", "/map", "the map input (nav_msgs/OccupancyGrid, reliable, transient local)", *_TOPIC),
+    Param("scan_topic", "/scan", "the lidar input (sensor_msgs/LaserScan, sensor-data QoS)", *_TOPIC),
+    Param("odom_topic", "/odom", "the odometry input (nav_msgs/Odometry): its twist moves the particles", *_TOPIC),
+    Param("initialpose_topic", "/initialpose", "the initial pose input (PoseWithCovarianceStamped)", *_TOPIC),
+    Param("pose_topic", "/pf/pose", "each corrected estimate (as nav2_amcl's /amcl_pose)", *_TOPIC),
+    Param("map_frame", "map", "the fixed frame of the map and of every output", *_FRAME),
+    Param("odom_frame", "odom", "the odometry frame (publish_tf: map_to_odom)", *_FRAME),
+    Param("particle_filter_frame", "base_link_pf", "the estimate's child frame (/pf/pose/odom and TF)", *_FRAME),
+    Param("base_frame", "base_link", "the robot's frame: the laser pose is looked up in TF from it", *_FRAME),
+    "robot",
+    Param("robot_model_type", "ackermann", "the base's kinematics: ackermann (a car), differential or omni",
+          _one_of(*ROBOT_MODEL_TYPES), "one of " + ", ".join(ROBOT_MODEL_TYPES)),
+    Param("deterministic", False, "no motion noise: the particles follow the odometry exactly", *_BOOL),
+    Param("motion_a_trans", 0.05, "along-track noise std (m) per sqrt(m) travelled", *_NONNEG),
+    Param("motion_a_lateral", 0.04, "across-track noise std (m) per sqrt(m) travelled", *_NONNEG),
+    Param("motion_a_rot", 0.1, "heading noise std (rad) per sqrt(rad) turned", *_NONNEG),
+    Param("motion_a_rot_to_trans", 0.02, "position noise std (m) per sqrt(rad) turned", *_NONNEG),
+    Param("motion_a_trans_to_rot", 0.05, "heading noise std (rad) per sqrt(m) travelled", *_NONNEG),
+    Param("motion_floor_xy", 0.02, "position noise std (m) per sqrt(m travelled + rad turned)", *_NONNEG),
+    Param("motion_floor_theta", 0.02, "heading noise std (rad) per sqrt(m travelled + rad turned)", *_NONNEG),
+    Param("alpha1", -1.0, "nav2_amcl's rotation noise from rotation: sets motion_a_rot", *_ALPHA),
+    Param("alpha2", -1.0, "nav2_amcl's rotation noise from translation: sets motion_a_trans_to_rot", *_ALPHA),
+    Param("alpha3", -1.0, "nav2_amcl's translation noise from translation: sets motion_a_trans", *_ALPHA),
+    Param("alpha4", -1.0, "nav2_amcl's translation noise from rotation: sets motion_a_rot_to_trans", *_ALPHA),
+    Param("alpha5", -1.0, "nav2_amcl's strafe noise (omni only): sets motion_a_lateral", *_ALPHA),
+    Param("laser_pose_from_tf", True, "read the laser pose from TF (base_frame -> the scan's frame)", *_BOOL),
+    Param("laser_offset_x", 0.275, "laser position ahead of base_frame (m) when TF has none", *_FIN),
+    Param("laser_offset_y", 0.0, "laser position left of base_frame (m) when TF has none", *_FIN),
+    Param("laser_offset_yaw", 0.0, "laser yaw relative to base_frame (rad) when TF has none", *_FIN),
+    Param("laser_max_range", -1.0, "the lidar's range (m): a reading this long is no return", _finite,
+          "finite (<= 0: the scan's range_max)"),
+    Param("scan_field_of_view", 4.71, "field of view (rad) assumed when a scan carries no angles",
+          lambda v: _positive(v) and v <= 2 * math.pi + 1e-6, "in (0, 2 pi]"),
+    Param("scan_stamp", "first_beam", "which beam a scan's header stamp describes",
+          _one_of("first_beam", "last_beam"), "first_beam or last_beam"),
+    Param("scan_stamp_offset", 0.0, "how much later (s) than that beam the driver stamped the scan", *_SECONDS),
+    "odometry calibration",
+    Param("align_odometry", True, "move the particles to each scan's own time (false: the newest odometry)", *_BOOL),
+    Param("odom_time_offset", 0.0, "odometry stamped t moves the robot up to t + this (s); 40 ms late: -0.04",
+          *_SECONDS),
+    Param("odom_speed_scale", 1.0, "speed used = this x the reported speed", *_POS),
+    Param("odom_yaw_rate_scale", 1.0, "yaw rate used = this x the reported yaw rate + odom_yaw_rate_bias", *_POS),
+    Param("odom_yaw_rate_bias", 0.0, "added to the scaled yaw rate (rad/s)", *_FIN),
+    Param("odom_max_acceleration", 0.0, "the tyres' grip (m/s^2): faster speed changes are slip (0: off)", *_NONNEG),
+    Param("odom_max_gap", 1.0, "odometry silent longer than this (s) restarts the motion history", *_POS),
+    Param("odom_max_speed", 20.0, "odometry faster than this (m/s) is a broken message and ignored", *_POS),
+    Param("odom_max_yaw_rate", 20.0, "odometry turning faster than this (rad/s) is ignored", *_POS),
+    Param("scan_max_wait", 0.5, "a scan newer than the odometry waits this long (s) for it",
+          lambda v: _positive(v) and v <= 10.0, "in (0, 10]"),
+    Param("scan_queue_size", 20, "at most this many scans wait for odometry", *_int(1, 1000)),
+    "sensor model",
+    Param("sensor_model", "beam", "beam (the course's beam model) or likelihood_field (as nav2_amcl)",
+          _one_of("beam", "likelihood_field"), "beam or likelihood_field"),
+    Param("num_beams_per_particle", 100, "beams of each scan used, spread evenly", *_int(1, 10000)),
+    Param("angle_step", 0, "use every n-th beam instead (the course's stride; 0: num_beams_per_particle)",
+          *_int(0, 10000)),
+    Param("deskew", True, "cast each beam from the laser pose at its own time within the sweep", *_BOOL),
+    Param("lidar_scale_to_map_scale", 1.0, "lidar metres x this = map metres", *_POS),
+    Param("map_wall_depth", 0.0, "how far (m) behind the map's free-space edge returns end (beam model)", *_HALF),
+    Param("range_scale_estimation", True, "learn the lidar-to-map range scale while tracking (beam model)", *_BOOL),
+    Param("range_scale_alpha", 0.02, "range_scale_estimation: weight of each update in the learnt scale", *_RATE),
+    Param("range_scale_bound", 0.05, "range_scale_estimation: the scale stays within 1 +- this of the start",
+          *_HALF),
+    Param("alpha_hit", 0.74, "beam model: weight of the Gaussian hit component", *_NONNEG),
+    Param("alpha_short", 0.07, "beam model: weight of the short-reading component", *_NONNEG),
+    Param("alpha_max", 0.07, "beam model: weight of the max-range component", *_NONNEG),
+    Param("alpha_rand", 0.12, "beam model: weight of the uniform component", *_NONNEG),
+    Param("sigma_hit", 0.2, "beam model: std (m) of the hit Gaussian (in cells: sigma_hit_cells)", *_METRES),
+    Param("squash_factor", 2.2, "each scan's log-likelihood is divided by this", *_POS),
+    Param("table_width", 201, "beam model: table cells; it reaches (table_width - 1) x table_resolution",
+          *_int(2, 4096)),
+    Param("table_resolution", 0.05, "beam model: table cell (m) that ranges are binned to",
+          lambda v: _positive(v) and v <= 1.0, "> 0 and <= 1"),
+    Param("do_beamskip", False, "leave out beams most particles cannot explain (people, glass), as nav2", *_BOOL),
+    Param("beam_skip_distance", 0.5, "do_beamskip: a particle explains a beam within this (m)", *_POS),
+    Param("beam_skip_threshold", 0.3, "do_beamskip: use a beam more than this share of particles explain", *_FRAC),
+    Param("beam_skip_error_threshold", 0.9, "do_beamskip: use all beams when this share would be skipped", *_FRAC),
+    Param("beam_skip_max_spread", 1.0, "do_beamskip: only while the cloud's position std is <= this (m)", *_POS),
+    Param("lf_z_hit", 0.5, "likelihood_field: weight of the Gaussian of the distance to a wall", *_NONNEG),
+    Param("lf_z_rand", 0.5, "likelihood_field: weight of the uniform density 1 / z_max", *_NONNEG),
+    Param("lf_sigma_hit", 0.1, "likelihood_field: std (m) of that Gaussian", *_POS),
+    Param("laser_likelihood_max_dist", 2.0, "likelihood_field: distances to a wall are capped at this (m)", *_POS),
+    "filter",
+    Param("num_particles", 2000, "number of particles while tracking", *_int(1, 1_000_000)),
+    Param("resample_ess_fraction", 1.0, "resample when the effective sample size < this x the count", *_FRAC),
+    Param("roughening_xy", 0.01, "std (m) of the x, y jitter added after resampling", *_NONNEG),
+    Param("roughening_theta", 0.005, "std (rad) of the heading jitter added after resampling", *_NONNEG),
+    Param("update_min_distance", 0.005, "a scan updates the filter after this much travel (m) ...", *_NONNEG),
+    Param("update_min_angle", 0.005, "... or this much rotation (rad) since the last update", *_NONNEG),
+    Param("update_every_n_scans", 0, "also update on every n-th scan while standing (0: only on motion)", *_int(0)),
+    Param("random_seed", -1, "seed of every random draw (-1: nondeterministic)", lambda v: isinstance(v, int),
+          "an integer"),
+    Param("initial_std_xy", 0.5, "std (m) of the initial cloud when /initialpose has no covariance", *_NONNEG),
+    Param("initial_std_theta", 0.2, "std (rad) of the initial heading spread", *_NONNEG),
+    Param("use_initialpose_covariance", True, "spread the initial cloud with /initialpose's covariance", *_BOOL),
+    Param("initial_update_stages", 8, "the first scan after an initial pose updates in this many stages", *_int(1)),
+    Param("set_initial_pose", False, "start from initial_pose.x/.y/.yaw, not /initialpose", *_BOOL),
+    Param("initial_pose.x", 0.0, "initial x (m, map frame) with set_initial_pose", *_FIN),
+    Param("initial_pose.y", 0.0, "initial y (m, map frame) with set_initial_pose", *_FIN),
+    Param("initial_pose.yaw", 0.0, "initial heading (rad, map frame) with set_initial_pose", *_FIN),
+    Param("adaptive_particles", False, "KLD-adaptive particle count in [min_particles, max_particles]", *_BOOL),
+    Param("min_particles", 500, "adaptive_particles: fewest particles", *_int(1)),
+    Param("max_particles", 40000, "adaptive_particles: most particles (a global spread keeps them)",
+          *_int(1, 1_000_000)),
+    Param("pf_err", 0.05, "adaptive_particles: the KLD bound epsilon", lambda v: _positive(v) and v < 1, "in (0, 1)"),
+    Param("pf_z", 0.99, "adaptive_particles: the normal quantile of the KLD bound (nav2's pf_z)", *_POS),
+    Param("kld_bin_xy", 0.5, "adaptive_particles: histogram bin (m) in x and y", *_POS),
+    Param("kld_bin_theta", math.radians(10.0), "adaptive_particles: histogram bin (rad) in heading", *_POS),
+    "recovery",
+    Param("global_localization", False, "start with particles over the whole map (no initial pose)", *_BOOL),
+    Param("global_init", "scan", "place a global spread: scan (poses the next scan fits) or uniform",
+          _one_of("scan", "uniform"), "scan or uniform"),
+    Param("global_num_particles", 40000, "particles of a global spread until it converges", *_int(1, 1_000_000)),
+    Param("global_converged_std", 0.5, "a global spread has converged below this position std (m)", *_POS),
+    Param("global_seed_step", 0.2, "global_init scan: lattice spacing (m) of the candidate positions", *_POS),
+    Param("global_seed_headings", 72, "global_init scan: candidate headings per position", *_int(1, 3600)),
+    Param("global_seed_beams", 30, "global_init scan: beams used to score the lattice", *_int(1, 10000)),
+    Param("global_seed_candidates", 4000, "global_init scan: best lattice poses the particles are drawn around",
+          *_int(1, 10_000_000)),
+    Param("global_seed_temperature", 4.0, "global_init scan: larger keeps more look-alike places alive", *_POS),
+    Param("global_seed_uniform", 0.1, "global_init scan: share of the particles still spread uniformly", *_FRAC),
+    Param("max_impossible_scans", 3, "this many scans in a row no particle explains re-spread the cloud", *_int(1)),
+    Param("recovery", True, "when lost, hold the pose on odometry and search for a better place", *_BOOL),
+    Param("recovery_search_period", 2.0, "while lost: seconds between two searches for a challenger", *_POS),
+    Param("recovery_particles", 2000, "particles of a challenger cloud", *_int(10)),
+    Param("recovery_margin", 0.15, "how much better (scan-map agreement) a challenger or a jump must fit", *_FRAC),
+    Param("recovery_confirm_updates", 20, "a challenger wins after fitting better this many updates in a row ...",
+          *_int(1)),
+    Param("recovery_confirm_distance", 1.0, "... over at least this much travel (m)", *_NONNEG),
+    Param("recovery_switch_step", 0.25, "after a switch the pose glides at most this far (m) per update", *_NONNEG),
+    Param("recovery_switch_turn", 0.2, "... and turns at most this much (rad) per update", *_NONNEG),
+    Param("recovery_switch_glide_max", 0.0, "publish a switch farther than this (m) at once (0: always glide)",
+          *_NONNEG),
+    Param("recovery_jump_glide", 0.25, "a tracking jump farther than this (m) must fit better (0: no check)",
+          *_NONNEG),
+    Param("recovery_challenger_timeout", 8.0, "drop a challenger that has not won within this long (s)", *_POS),
+    Param("health_fast_alpha", 0.2, "weight of each update in the fast agreement average (/pf/health)", *_RATE),
+    Param("health_slow_alpha", 0.02, "weight of each update in the slow agreement average", *_RATE),
+    Param("health_lost_floor", 0.35, "lost when the fast agreement stays below this ...", *_FRAC),
+    Param("health_lost_ratio", 0.5, "... or below this fraction of the slow agreement ...", *_FRAC),
+    Param("health_lost_updates", 20, "... for this many sensor updates in a row", *_int(1)),
+    "performance",
+    Param("ray_caster", "lookup_table", "lookup_table (fast), lookup_table_exact, distance_transform, exact or "
+          "scan_simulator (the course's)",
+          _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact", "scan_simulator"),
+          "lookup_table, lookup_table_exact, distance_transform, exact or scan_simulator"),
+    Param("scan_theta_discretization", 144, "headings of the range lookup table (144: 2.5 deg)", *_int(8, 2048)),
+    Param("range_table_lazy_cells", 10_000_000, "bigger maps build the range table per tile, where needed",
+          *_int(0)),
+    Param("sensor_update_thread", False, "run the sensor update on its own thread", *_BOOL),
+    "output",
+    Param("publish_tf", "map_to_particle_filter_frame", "the transform to broadcast",
           _one_of("map_to_particle_filter_frame", "map_to_odom", "none"),
           "map_to_particle_filter_frame, map_to_odom or none"),
-    Param("max_particles_published", 500, "at most this many particles go out on /pf/particles",
-          lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
-    # --- filter
-    Param("num_particles", 2000, "number of particles", lambda v: isinstance(v, int) and 1 <= v <= 1_000_000,
-          "an integer in [1, 1000000]"),
-    Param("resample_ess_fraction", 1.0, "resample when the effective sample size falls below this fraction of "
-          "num_particles; 1.0 = every scan (the course's choice: simple, but it discards diversity on "
-          "uninformative scans), 0.5 is a common, more conservative choice", _fraction, "in [0, 1]"),
-    Param("roughening_xy", 0.01, "std (m) of the jitter added to x and y after resampling", _non_negative, ">= 0"),
-    Param("roughening_theta", 0.005, "std (rad) of the jitter added to theta after resampling", _non_negative, ">= 0"),
-    Param("update_min_distance", 0.005, "a scan updates the filter only after this much travel (m) since the last "
-          "update (the first scan after an initialisation always does)", _non_negative, ">= 0"),
-    Param("update_min_angle", 0.005, "... or this much rotation (rad)", _non_negative, ">= 0"),
-    Param("odom_max_gap", 1.0, "odometry silent (or stamps jumping) for longer than this (s) resets the motion "
-          "reference instead of moving the particles", _positive, "> 0"),
-    Param("odom_max_speed", 20.0, "odometry faster than this (m/s) is a broken message and ignored", _positive, "> 0"),
-    Param("odom_max_yaw_rate", 20.0, "odometry turning faster than this (rad/s) is ignored", _positive, "> 0"),
-    Param("odom_max_acceleration", 0.0, "the fastest change of forward speed (m/s^2) the base's tyres can make "
-          "(their grip, about mu x 9.81); odometry changing speed faster slips or skids (locked wheels report a "
-          "stop while the robot slides on): the particles spread along track over the difference from the speed "
-          "changing at this rate (mean half of it, std half of it) and the update policy counts it as travel "
-          "(0: odometry never slips)", _non_negative, ">= 0"),
-    Param("max_impossible_scans", 3, "this many scans in a row giving every particle likelihood 0 re-spread the "
-          "particles over the free space", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    Param("random_seed", -1, "seed of every random draw; -1 = nondeterministic", lambda v: isinstance(v, int),
-          "an integer"),
-    # --- initialisation
-    Param("initial_std_xy", 0.5, "std (m) of the initial cloud when /initialpose has no covariance", _non_negative,
-          ">= 0"),
-    Param("initial_std_theta", 0.2, "std (rad) of the initial heading spread", _non_negative, ">= 0"),
-    Param("initial_update_stages", 8, "the first scan after an initial pose updates the cloud in up to this many "
-          "tempered stages (likelihood^beta, the betas summing to 1, each keeping half the cloud effective; "
-          "resampled and jittered between stages): the cloud settles onto where that one scan points instead of "
-          "onto the few initial particles nearest to it. 1: one plain update", lambda v: isinstance(v, int) and v >= 1,
-          "an integer >= 1"),
-    Param("use_initialpose_covariance", True, "spread the cloud with the covariance of /initialpose when it has one",
-          lambda v: isinstance(v, bool), "true or false"),
-    Param("global_localization", False, "start with particles spread uniformly over free space (no initial pose "
-          "needed)", lambda v: isinstance(v, bool), "true or false"),
-    # --- global localization and recovery (localization/health.py)
-    Param("global_num_particles", 40000, "particles used while globally localizing or recovering (uniform spread "
-          "over free space); the cloud shrinks back to num_particles once it has converged",
-          lambda v: isinstance(v, int) and 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
-    Param("global_converged_std", 0.5, "a global spread has converged when the cloud's position std (m, largest "
-          "axis) falls below this", _positive, "> 0"),
-    Param("recovery", True, "detect a lost filter (scan-map agreement, see health_*): hold the pose on odometry "
-          "(the scans update only the search, not the cloud) and search the map for a place the scans fit clearly "
-          "better; switch there only once confirmed (recovery_*). Never a jump on one scan",
-          lambda v: isinstance(v, bool), "true or false"),
-    Param("recovery_search_period", 2.0, "while lost: seconds (scan clock) between two searches of the map for a "
-          "challenger (a scan-seeded second cloud)", _positive, "> 0"),
-    Param("recovery_particles", 2000, "particles of a challenger cloud", lambda v: isinstance(v, int) and v >= 10,
-          "an integer >= 10"),
-    Param("recovery_margin", 0.15, "a challenger wins an update when its scan-map agreement beats the estimate's "
-          "by this much (and reaches health_lost_floor); a tracking jump (recovery_jump_glide) must beat the "
-          "published pose's by as much", _fraction, "in [0, 1]"),
-    Param("recovery_confirm_updates", 20, "a challenger replaces the cloud after winning this many updates in a row",
-          lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    Param("recovery_confirm_distance", 1.0, "... while the robot travelled at least this far (m)", _non_negative,
-          ">= 0"),
-    Param("recovery_switch_step", 0.25, "after a switch the published pose moves to the new place by at most this "
-          "far (m) per sensor update, its covariance widened by the distance still to go (0: in one step)",
-          _non_negative, ">= 0"),
-    Param("recovery_switch_turn", 0.2, "... and turns by at most this much (rad) per sensor update", _non_negative,
-          ">= 0"),
-    Param("recovery_switch_glide_max", 0.0, "a switch to a place farther than this (m) from the published pose is "
-          "published at once, for a robot that may be carried elsewhere (0: every switch glides, however far)",
-          _non_negative, ">= 0"),
-    Param("recovery_jump_glide", 0.25, "while tracking, a sensor update that moves the estimate farther than this (m) "
-          "from the published pose carried by odometry, and outside three standard deviations of that pose's "
-          "position covariance in the direction of the move (a cloud that changed its mind between two places, not "
-          "one converging), is kept only when "
-          "the scan's map agreement there beats the published pose's by recovery_margin (else the update is "
-          "undone) and is published as a glide, as after a switch (0: no such check, at once)", _non_negative,
-          ">= 0"),
-    Param("recovery_challenger_timeout", 8.0, "a challenger that has not won within this long (s, scan clock) is "
-          "dropped", _positive, "> 0"),
-    Param("health_fast_alpha", 0.2, "weight of each new scan-map agreement in the fast average (the published "
-          "health)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),
-    Param("health_slow_alpha", 0.02, "weight of each new agreement in the slow average",
-          lambda v: _fraction(v) and v > 0,
-          "in (0, 1]"),
-    Param("health_lost_floor", 0.35, "lost when the fast average stays below this agreement ...", _fraction,
-          "in [0, 1]"),
-    Param("health_lost_ratio", 0.5, "... or below this fraction of the slow average ...", _fraction, "in [0, 1]"),
-    Param("health_lost_updates", 20, "... for this many sensor updates in a row",
-          lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
-    # --- motion model (core/motion.py: a random walk in the distance travelled and the angle turned)
-    Param("deterministic", False, "no motion noise: exact odometry composition", lambda v: isinstance(v, bool),
-          "true or false"),
-    Param("robot_model_type", "ackermann", "the base's kinematics: ackermann (a car: keeps the odometry's sideways "
-          "motion, noise along/across its heading), differential (turns on the spot; sideways odometry vy is "
-          "ignored), omni (moves sideways; noise along/across its direction of travel); nav2's names "
-          "nav2_amcl::DifferentialMotionModel, nav2_amcl::OmniMotionModel, omnidirectional are accepted",
-          _one_of(*ROBOT_MODEL_TYPES), "one of " + ", ".join(ROBOT_MODEL_TYPES)),
-    Param("motion_a_trans", 0.05, "along-track noise std (m) per square root of a metre travelled (m/sqrt(m)): "
-          "variance grows by motion_a_trans^2 per metre", _non_negative, ">= 0"),
-    Param("motion_a_lateral", 0.04, "across-track noise std (m) per square root of a metre travelled (m/sqrt(m))",
-          _non_negative, ">= 0"),
-    Param("motion_a_rot", 0.1, "heading noise std (rad) per square root of a radian turned (rad/sqrt(rad))",
-          _non_negative, ">= 0"),
-    Param("motion_a_rot_to_trans", 0.02, "position noise std (m, along and across) per square root of a radian "
-          "turned (m/sqrt(rad))", _non_negative, ">= 0"),
-    Param("motion_a_trans_to_rot", 0.05, "heading noise std (rad) per square root of a metre travelled "
-          "(rad/sqrt(m))", _non_negative, ">= 0"),
-    Param("motion_floor_xy", 0.02, "position noise std (m, along and across) per square root of the motion "
-          "(metres travelled + radians turned)", _non_negative, ">= 0"),
-    Param("motion_floor_theta", 0.02, "heading noise std (rad) per square root of the motion (metres travelled "
-          "+ radians turned)", _non_negative, ">= 0"),
-    # nav2_amcl's names: set (>= 0), each replaces the motion_* value it maps to, converted from nav2's
-    # per-update variances (core/motion.py, nav2_alphas_to_noise); -1 = not set
-    Param("alpha1", -1.0, "nav2_amcl: rotation noise from rotation; sets motion_a_rot = sqrt(alpha1 x 0.2 rad); "
-          "-1: not set", _alpha, "-1 (not set) or >= 0"),
-    Param("alpha2", -1.0, "nav2_amcl: rotation noise from translation; sets motion_a_trans_to_rot = sqrt(alpha2 x "
-          "0.25 m), x2 inside for ackermann/differential (nav2 draws it twice per update); -1: not set", _alpha,
-          "-1 (not set) or >= 0"),
-    Param("alpha3", -1.0, "nav2_amcl: translation noise from translation; sets motion_a_trans = sqrt(alpha3 x 0.25 "
-          "m); -1: not set", _alpha, "-1 (not set) or >= 0"),
-    Param("alpha4", -1.0, "nav2_amcl: translation noise from rotation; sets motion_a_rot_to_trans = sqrt(alpha4 x "
-          "0.2 rad); -1: not set", _alpha, "-1 (not set) or >= 0"),
-    Param("alpha5", -1.0, "nav2_amcl: strafe noise from translation (omni only); sets motion_a_lateral = "
-          "sqrt(alpha5 x 0.25 m); -1: not set", _alpha, "-1 (not set) or >= 0"),
-    # --- sensor model
-    Param("num_beams_per_particle", 100, "beams of each scan used by the sensor model",
-          lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
-    Param("angle_step", 0, "take every angle_step-th beam of the scan, from the first (the course's downsampling "
-          "stride: 11 gives 99 of a Hokuyo's 1081 beams); 0: num_beams_per_particle beams spread evenly over the scan",
-          lambda v: isinstance(v, int) and 0 <= v <= 10000, "an integer in [0, 10000]"),
-    Param("scan_field_of_view", 4.71, "field of view (rad) assumed when a scan carries no angles (the course's "
-          "convention)", lambda v: _positive(v) and v <= 2 * math.pi + 1e-6, "in (0, 2 pi]"),
-    Param("scan_theta_discretization", 144, "heading bins of the precomputed range table (lookup_table "
-          "casters); 144 = 2.5 degrees. More bins: sharper wall edges far ahead, more memory (trade-off measured "
-          "in docs/performance.md); lookup_table_exact removes the smearing at a higher update cost",
-          lambda v: isinstance(v, int) and 8 <= v <= 2048, "an integer in [8, 2048]"),
-    Param("lidar_scale_to_map_scale", 1.0, "scale from lidar metres to map metres", _positive, "> 0"),
-    Param("map_wall_depth", 0.0, "how far (m) behind the map's free-space edge a lidar return ends on a wall: maps "
-          "draw walls a few cells thick and the surface lies inside them. The beam model scores each return as "
-          "s·z − map_wall_depth (s: lidar_scale_to_map_scale) against the ray cast to the edge; localization-calibrate "
-          "estimates it (\"wall surface ... behind the free-space edge\")",
-          lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
-    Param("range_scale_estimation", True, "beam model: learn the lidar-to-map range scale while the filter tracks "
-          "(core/range_scale.py): after each sensor update of a converged cloud, the scale is fitted jointly with a "
-          "small correction of the estimate over the beams within a few centimetres of the map, low-pass filtered "
-          "(range_scale_alpha), kept within range_scale_bound of lidar_scale_to_map_scale (its start value), and "
-          "replaces lidar_scale_to_map_scale. For a building a little larger or smaller than its map, or a lidar "
-          "whose ranges read long or short; false: lidar_scale_to_map_scale as configured. The likelihood field "
-          "does not use it",
-          lambda v: isinstance(v, bool), "true or false"),
-    Param("range_scale_alpha", 0.02, "range_scale_estimation: weight of each scan's ratio in the estimate (a time "
-          "constant of 1 / range_scale_alpha sensor updates)", lambda v: _fraction(v) and v > 0, "in (0, 1]"),
-    Param("range_scale_bound", 0.05, "range_scale_estimation: the estimate stays within lidar_scale_to_map_scale x "
-          "(1 +- this)", lambda v: _finite(v) and 0.0 <= v <= 0.5, "in [0, 0.5]"),
-    Param("laser_offset_x", 0.275, "laser position ahead of base_link (m); racecar: 0.275", _finite, "finite"),
-    Param("laser_offset_y", 0.0, "laser position left of base_link (m)", _finite, "finite"),
-    Param("laser_offset_yaw", 0.0, "laser yaw relative to base_link (rad)", _finite, "finite"),
-    Param("alpha_hit", 0.74, "weight of the Gaussian hit component", _non_negative, ">= 0"),
-    Param("alpha_short", 0.07, "weight of the short-reading component", _non_negative, ">= 0"),
-    Param("alpha_max", 0.07, "weight of the max-range component", _non_negative, ">= 0"),
-    Param("alpha_rand", 0.12, "weight of the uniform random component", _non_negative, ">= 0"),
-    Param("sigma_hit", 0.2, "std (m) of the hit component (Gaussian around the expected range); before 2026-11 "
-          "this was in map cells: give cells as sigma_hit_cells (converted with table_resolution)",
-          lambda v: _positive(v) and v <= 1.0, "> 0 and <= 1 (metres)"),
-    Param("squash_factor", 2.2, "likelihoods are raised to 1/squash_factor", _positive, "> 0"),
-    Param("table_width", 201, "beam model table size in table cells (rows: measured range, columns: expected "
-          "range, each column normalised); it covers ranges up to (table_width - 1) x table_resolution m, which "
-          "also bounds z_max and the ray casts",
-          lambda v: isinstance(v, int) and 2 <= v <= 4096, "an integer in [2, 4096]"),
-    Param("table_resolution", 0.05, "beam model table cell (m): measured and expected ranges are binned to it "
-          "(independent of the map's resolution)", lambda v: _positive(v) and v <= 1.0, "> 0 and <= 1"),
-    Param("ray_caster", "lookup_table", "lookup_table (fast, cached on disk), lookup_table_exact (the table "
-          "plus an exact finish per beam: slower, as accurate as exact), distance_transform or exact",
-          _one_of("lookup_table", "lookup_table_exact", "distance_transform", "exact"),
-          "lookup_table, lookup_table_exact, distance_transform or exact"),
-    # --- node interface: nav2-style options, watchdogs and diagnostics, pose persistence
-    Param("pose_topic", "/pf/pose", "geometry_msgs/PoseWithCovarianceStamped output of the estimate (as nav2_amcl's "
-          "/amcl_pose), beside /pf/pose/odom", _topic, "a topic name"),
-    Param("set_initial_pose", False, "start from initial_pose.x/.y/.yaw (as nav2_amcl) instead of waiting for "
-          "/initialpose", lambda v: isinstance(v, bool), "true or false"),
-    Param("initial_pose.x", 0.0, "initial pose x (m, map frame) used when set_initial_pose is true", _finite, "finite"),
-    Param("initial_pose.y", 0.0, "initial pose y (m, map frame)", _finite, "finite"),
-    Param("initial_pose.yaw", 0.0, "initial pose heading (rad, map frame)", _finite, "finite"),
-    Param("base_frame", "base_link", "the robot's frame: the laser pose is looked up in TF as base_frame -> the "
-          "scan's frame", _topic, "a frame id"),
-    Param("laser_pose_from_tf", True, "read the laser pose from TF (base_frame -> scan frame, /tf_static or /tf) when "
-          "available; laser_offset_* otherwise", lambda v: isinstance(v, bool), "true or false"),
-    Param("odom_timeout", 0.5, "warn (on /diagnostics and in the log) when scans arrive but no odometry came for "
-          "this long (s)", _positive, "> 0"),
-    Param("scan_timeout", 0.5, "warn when odometry arrives but no scan came for this long (s)", _positive, "> 0"),
-    Param("map_timeout", 5.0, "warn when no map has arrived this long (s) after the start", _positive, "> 0"),
-    Param("tf_timeout", 1.0, "warn (and use laser_offset_*) when the laser pose is not in TF this long (s) after "
-          "the first scan", _positive, "> 0"),
-    Param("sensor_update_thread", False, "run the sensor update on its own thread (a short FIFO of scans) instead "
-          "of in the scan callback: odometry poses keep flowing during an update, at the cost of a GIL hand-over "
-          "per scan (see docs/node.md, Threading)", lambda v: isinstance(v, bool), "true or false"),
-    Param("foxglove_port", -1, "serve a live view (map, scan, particles, estimate, TF) over the Foxglove WebSocket "
-          "protocol on this port (needs foxglove-sdk); 0: any free port; -1: off",
-          lambda v: isinstance(v, int) and -1 <= v <= 65535, "an integer in [-1, 65535]"),
-    Param("foxglove_host", "127.0.0.1", "address the live view listens on (127.0.0.1: this machine only)",
+    Param("max_particles_published", 500, "at most this many particles go out on /pf/particles", *_int(0)),
+    Param("diagnostics_period", 1.0, "period (s) of /diagnostics", *_POS),
+    Param("odom_timeout", 0.5, "warn when scans arrive but no odometry came for this long (s)", *_POS),
+    Param("scan_timeout", 0.5, "warn when odometry arrives but no scan came for this long (s)", *_POS),
+    Param("map_timeout", 5.0, "warn when no map arrived this long (s) after the start", *_POS),
+    Param("tf_timeout", 1.0, "use laser_offset_* when TF has no laser pose this long (s)", *_POS),
+    Param("persist_pose", False, "save the estimate; start from it when no initial pose is set", *_BOOL),
+    Param("persist_pose_file", "", "the saved pose's file (empty: last_pose.yaml in the cache directory)",
+          lambda v: isinstance(v, str), "a path or empty"),
+    Param("persist_pose_period", 3.0, "seconds between two saves of the pose", *_POS),
+    Param("foxglove_port", -1, "serve a Foxglove live view on this port (0: any free port; -1: off)",
+          *_int(-1, 65535)),
+    Param("foxglove_host", "127.0.0.1", "the address the live view listens on",
           lambda v: isinstance(v, str) and len(v) > 0, "an address"),
-    Param("diagnostics_period", 1.0, "period (s) of /diagnostics (diagnostic_msgs/DiagnosticArray)", _positive, "> 0"),
-    Param("persist_pose", False, "write the estimate and its covariance to persist_pose_file every "
-          "persist_pose_period s, and start from it when no initial pose is set", lambda v: isinstance(v, bool),
-          "true or false"),
-    Param("persist_pose_file", "", "file of the persisted pose; empty: last_pose.yaml in the cache directory "
-          "($LOCALIZATION_CACHE_DIR or ~/.cache/localization)", lambda v: isinstance(v, str), "a path or empty"),
-    Param("persist_pose_period", 3.0, "seconds between two writes of the persisted pose", _positive, "> 0"),
-    # --- global localization in seconds and large maps: core/filter/global_init.py,
-    # core/raycast/lookup_table.py (tiles built on demand)
-    Param("global_init", "scan", "how a global spread (start, service, recovery) places its particles: scan "
-          "(importance sampling of poses from the first scan over a coarse lattice, see global_seed_*) or uniform "
-          "(uniform over the free space)", _one_of("scan", "uniform"), "scan or uniform"),
-    Param("global_seed_step", 0.2, "global_init scan: lattice spacing (m) of the candidate positions", _positive,
-          "> 0"),
-    Param("global_seed_headings", 72, "global_init scan: candidate headings per lattice position",
-          lambda v: isinstance(v, int) and 1 <= v <= 3600, "an integer in [1, 3600]"),
-    Param("global_seed_beams", 30, "global_init scan: beams of the scan used to score the lattice",
-          lambda v: isinstance(v, int) and 1 <= v <= 10000, "an integer in [1, 10000]"),
-    Param("global_seed_candidates", 4000, "global_init scan: best lattice poses the particles are drawn around",
-          lambda v: isinstance(v, int) and 1 <= v <= 10_000_000, "an integer in [1, 10000000]"),
-    Param("global_seed_temperature", 4.0, "global_init scan: candidate weights exp(log-likelihood / this); larger "
-          "keeps more look-alike places alive", _positive, "> 0"),
-    Param("global_seed_uniform", 0.1, "global_init scan: fraction of the particles still spread uniformly",
-          _fraction, "in [0, 1]"),
-    Param("range_table_lazy_cells", 10_000_000, "maps with more cells than this build the lookup table tile by "
-          "tile where particles are (memory grows with the area driven, not with the map); 0: always",
-          lambda v: isinstance(v, int) and v >= 0, "an integer >= 0"),
-    # --- likelihood-field sensor model and KLD-adaptive particle count:
-    # core/sensors/likelihood_field.py, core/filter/kld.py (names as nav2_amcl's, lf_ where the beam model has one)
-    Param("sensor_model", "beam", "beam (the course's beam model over ray-cast ranges) or likelihood_field (each "
-          "beam's end point scored by its distance to the nearest occupied cell, as nav2_amcl's likelihood_field; "
-          "docs/models.md says when to use which)", _one_of("beam", "likelihood_field"), "beam or likelihood_field"),
-    Param("lf_z_hit", 0.5, "likelihood_field: weight of the Gaussian of the end point's distance to the nearest "
-          "obstacle", _non_negative, ">= 0"),
-    Param("lf_z_rand", 0.5, "likelihood_field: weight of the uniform density 1 / laser_max_range", _non_negative,
-          ">= 0"),
-    Param("lf_sigma_hit", 0.1, "likelihood_field: std (m) of that Gaussian (nav2's default 0.2 is worse on the "
-          "Stata trials and the RSS 2022 bags, docs/models.md)", _positive, "> 0"),
-    Param("laser_likelihood_max_dist", 2.0, "likelihood_field: distances to the nearest obstacle are capped at this "
-          "(m); end points off the map count as this far", _positive, "> 0"),
-    Param("laser_max_range", -1.0, "z_max, the range (m) of a reading with no return, for both sensor models: > 0: "
-          "this value (the lidar's maximum range); <= 0: each scan's own range_max (as nav2_amcl's -1). The beam "
-          "model scores readings at or beyond z_max, and NaN/inf ones, as max-range readings at z_max, clips "
-          "expected ranges there and caps z_max at its table's reach (table_width - 1) x table_resolution; the "
-          "likelihood field skips those beams and uses z_max in its uniform density lf_z_rand / z_max",
-          _finite, "finite (<= 0: the scan's range_max)"),
-    Param("do_beamskip", False, "leave out of each sensor update the beams that agree with the map for at most "
-          "beam_skip_threshold of the particles (returns from things the map does not have: people, boxes, windows "
-          "the beam passes through), as nav2_amcl; both sensor models", lambda v: isinstance(v, bool),
-          "true or false"),
-    Param("beam_skip_distance", 0.5, "do_beamskip: a beam agrees with the map for a particle when its end point lies "
-          "closer than this (m) to an obstacle (likelihood_field), or its measured range lies within this of the "
-          "range ray cast from the particle (beam model)", _positive, "> 0"),
-    Param("beam_skip_threshold", 0.3, "do_beamskip: a beam is used when more than this fraction of the particles "
-          "agree on it", _fraction, "in [0, 1]"),
-    Param("beam_skip_error_threshold", 0.9, "do_beamskip: when this fraction of the beams would be skipped the "
-          "cloud is off: all beams are used", _fraction, "in [0, 1]"),
-    Param("beam_skip_max_spread", 1.0, "do_beamskip: beams are skipped only while the particles' position standard "
-          "deviation (the larger of x and y, m) is at most this: a spread cloud may hold several hypotheses, and "
-          "a beam only the right one explains would be skipped", _positive, "> 0"),
-    Param("adaptive_particles", False, "KLD-adaptive particle count (Fox 2003, as nav2_amcl): every resampling draws "
-          "as many particles as the cloud's spread over bins of kld_bin_xy x kld_bin_theta needs, in "
-          "[min_particles, max_particles]; global localization and recovery start at max_particles. false: "
-          "num_particles always", lambda v: isinstance(v, bool), "true or false"),
-    Param("min_particles", 500, "adaptive_particles: fewest particles", lambda v: isinstance(v, int) and v >= 1,
-          "an integer >= 1"),
-    Param("max_particles", 40000, "adaptive_particles: most particles, and the count a global spread (start, "
-          "service, recovery) keeps until it converges (as global_num_particles without adaptive_particles)",
-          lambda v: isinstance(v, int) and 1 <= v <= 1_000_000, "an integer in [1, 1000000]"),
-    Param("pf_err", 0.05, "adaptive_particles: KLD bound epsilon between the sampled and the true distribution",
-          lambda v: _positive(v) and v < 1, "in (0, 1)"),
-    Param("pf_z", 0.99, "adaptive_particles: upper standard normal quantile z_(1-delta) of the KLD bound (nav2_amcl's "
-          "pf_z, used as the quantile value)", _positive, "> 0"),
-    Param("kld_bin_xy", 0.5, "adaptive_particles: histogram bin size (m) in x and y", _positive, "> 0"),
-    Param("kld_bin_theta", 0.17453292519943295, "adaptive_particles: histogram bin size (rad) in heading (10 deg)",
-          _positive, "> 0"),
-    # --- time-correct localization: odometry on the scan's clock, the scan stamp convention and scan deskew
-    # (core/odometry.py OdometryBuffer, core/localizer.py, core/sensors/beam.py); values from localization-calibrate
-    Param("align_odometry", True, "propagate the particles through the odometry history to each scan's own time "
-          "(interpolating between messages, extrapolating the last twist; a swept scan: the middle of its sweep) and "
-          "stamp the estimate with that time; false: each scan is used at the latest odometry",
-          lambda v: isinstance(v, bool), "true or false"),
-    Param("odom_time_offset", 0.0, "odometry clock vs scan clock (s): an odometry message stamped t describes the "
-          "motion up to t + odom_time_offset (odometry reporting 40 ms late: -0.04)",
-          lambda v: _finite(v) and abs(v) <= 1.0, "in [-1, 1]"),
-    Param("scan_max_wait", 0.5, "a scan newer than the newest odometry waits this long (s, on the scan clock) for "
-          "the odometry that covers its time (as a TF message filter); then it is used with the last twist "
-          "extrapolated, with a warning. Must exceed how late the odometry arrives (-odom_time_offset plus its "
-          "period)", lambda v: _positive(v) and v <= 10.0, "in (0, 10]"),
-    Param("scan_queue_size", 20, "at most this many scans wait for odometry (the oldest leaves early, extrapolated, "
-          "when more arrive)", lambda v: isinstance(v, int) and 1 <= v <= 1000, "an integer in [1, 1000]"),
-    Param("update_every_n_scans", 0, "besides motion (update_min_distance / update_min_angle), every n-th scan "
-          "updates the filter even when the robot stands; 0: only on motion", lambda v: isinstance(v, int) and v >= 0,
-          "an integer >= 0"),
-    Param("scan_stamp", "first_beam", "which beam a scan's header stamp describes: first_beam (the LaserScan "
-          "definition; sick_scan) or last_beam (urg_node with calibrate_time false, rplidar_ros: the stamp is taken "
-          "when the scan is complete); the scan's time is then the middle of its sweep (docs/timing.md; "
-          "localization-calibrate checks it against the bag's record times)", _one_of("first_beam", "last_beam"),
-          "first_beam or last_beam"),
-    Param("scan_stamp_offset", 0.0, "s by which the header stamp is later than the beam scan_stamp names (a "
-          "driver latency it did not subtract); the first beam's time is stamp - scan_stamp_offset (first_beam) "
-          "or that minus the sweep (last_beam)", lambda v: _finite(v) and abs(v) <= 1.0, "in [-1, 1]"),
-    Param("odom_speed_scale", 1.0, "speed used = odom_speed_scale x reported speed", _positive, "> 0"),
-    Param("odom_yaw_rate_scale", 1.0, "yaw rate used = odom_yaw_rate_scale x reported yaw rate + odom_yaw_rate_bias",
-          _positive, "> 0"),
-    Param("odom_yaw_rate_bias", 0.0, "rad/s added to the scaled reported yaw rate", _finite, "finite"),
-    Param("deskew", True, "when a scan has time_increment > 0 (a sweeping lidar), cast each beam from the laser pose "
-          "at its own time, moved by the odometry twist over the sweep (beam sensor model)",
-          lambda v: isinstance(v, bool), "true or false"),
-]
+)
 
 BY_NAME = {p.name: p for p in PARAMETERS}
 
@@ -561,3 +436,62 @@ def section_error(path, keys, node_name: str = NODE_NAME) -> str:
     found = ", ".join(repr(str(k)) for k in keys) or "none"
     return (f"parameter file {path} has no section for the node {node_name!r} (keys found: {found}); "
             f"its parameters go under '{node_name}:' or '/**:', then 'ros__parameters:'")
+
+
+# ------------------------------------------------------------------ the table as text: --help and docs/node.md
+MARKDOWN_BEGIN = "<!-- parameter table: written by python -m localization.core.parameters --markdown -->"
+MARKDOWN_END = "<!-- end of the parameter table -->"
+
+
+def show_value(value) -> str:
+    """A default as a parameter file writes it."""
+    if isinstance(value, bool) or value == "":
+        return {True: "true", False: "false", "": '""'}[value]
+    return value if isinstance(value, str) else f"{value:.10g}" if len(repr(value)) > 12 else repr(value)
+
+
+def help_text() -> str:
+    """Every parameter by group: name = default [rule], then its one-line description (``--help``)."""
+    lines = []
+    for group, about in GROUPS.items():
+        lines += [f"{group.capitalize()}: {about}"] + [
+            f"  {p.name} = {show_value(p.default)}  [{p.rule}]\n      {p.description}"
+            for p in PARAMETERS if p.group == group] + [""]
+    return "\n".join(lines).rstrip("\n")
+
+
+def markdown() -> str:
+    """Every parameter by group as markdown tables (docs/node.md holds it between MARKDOWN_BEGIN and _END)."""
+    lines = []
+    for group, about in GROUPS.items():
+        lines += [f"**{group.capitalize()}**: {about}.", "", "| parameter | default | rule | what it does |",
+                  "| --- | --- | --- | --- |"] + [
+            f"| `{p.name}` | `{show_value(p.default)}` | {p.rule} | {p.description} |"
+            for p in PARAMETERS if p.group == group] + [""]
+    return "\n".join(lines).rstrip("\n")
+
+
+def replace_markdown(text: str) -> str:
+    """``text`` (a document holding the two markers) with markdown() between them."""
+    head, begin, rest = text.partition(MARKDOWN_BEGIN)
+    end, tail = rest.partition(MARKDOWN_END)[1:]
+    if not begin or not end:
+        raise ValueError(f"no {MARKDOWN_BEGIN!r} ... {MARKDOWN_END!r} section")
+    return f"{head}{MARKDOWN_BEGIN}\n{markdown()}\n{MARKDOWN_END}{tail}"
+
+
+def main(argv=None) -> int:
+    """Print every parameter by group; --markdown [FILE]: write the table into FILE (docs/node.md)."""
+    import argparse
+    parser = argparse.ArgumentParser(prog="python -m localization.core.parameters", description=main.__doc__)
+    parser.add_argument("--markdown", nargs="?", const=Path(__file__).resolve().parents[2] / "docs" / "node.md",
+                        type=Path, metavar="FILE")
+    path = parser.parse_args(argv).markdown
+    if path is not None:
+        path.write_text(replace_markdown(path.read_text()))
+    print(help_text() if path is None else f"wrote the parameter table into {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

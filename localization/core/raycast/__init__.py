@@ -10,6 +10,7 @@ lookup_table         LookupTableRayCaster           precomputed table, interpola
 lookup_table_exact   LookupTableRayCaster(refine=1) the table plus an exact finish per beam
 distance_transform   DistanceTransformRayCaster     sphere tracing (no precomputation)
 exact                ExactRayCaster                 Amanatides–Woo traversal: the reference
+scan_simulator       ScanSimulatorRayCaster         the course's racecar_simulator ray marcher
 ==================== ============================== ============================================
 
 On maps of more than ``range_table_lazy_cells`` cells both table casters are a
@@ -23,13 +24,14 @@ from localization.core.parameters import default
 from localization.core.raycast.distance_transform import DistanceTransformRayCaster
 from localization.core.raycast.exact import ExactRayCaster, RayCaster
 from localization.core.raycast.lookup_table import DEFAULT_THETA_BINS, LookupTableRayCaster
+from localization.core.raycast.scan_simulator import ScanSimulatorRayCaster
 from localization.core.raycast.tiled_table import TiledLookupTableRayCaster
 
-RAY_CASTERS = ("lookup_table", "lookup_table_exact", "distance_transform", "exact")
+RAY_CASTERS = ("lookup_table", "lookup_table_exact", "distance_transform", "exact", "scan_simulator")
 TABLE_CASTERS = ("lookup_table", "lookup_table_exact")  # the casters over a precomputed range table
 
 __all__ = ["RAY_CASTERS", "TABLE_CASTERS", "DistanceTransformRayCaster", "ExactRayCaster", "LookupTableRayCaster",
-           "RayCaster", "TiledLookupTableRayCaster", "make_ray_caster", "tiled"]
+           "RayCaster", "ScanSimulatorRayCaster", "TiledLookupTableRayCaster", "make_ray_caster", "tiled"]
 
 
 def tiled(occupancy_map: OccupancyMap, lazy_cells: int | None = None) -> bool:
@@ -48,6 +50,8 @@ def make_ray_caster(kind: str, occupancy_map: OccupancyMap, max_range: float,
         return ExactRayCaster(occupancy_map, max_range)
     if kind == "distance_transform":
         return DistanceTransformRayCaster(occupancy_map, max_range)
+    if kind == "scan_simulator":  # the course's: theta_bins is its scan_theta_discretization
+        return ScanSimulatorRayCaster(occupancy_map, max_range, theta_bins=theta_bins)
     if kind in TABLE_CASTERS:
         if tiled(occupancy_map, lazy_cells):
             return TiledLookupTableRayCaster.for_map(occupancy_map, max_range, theta_bins=theta_bins,
