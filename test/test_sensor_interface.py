@@ -46,6 +46,7 @@ def test_both_models_implement_the_protocol(kind, table_cache):
     model = make(kind)
     assert isinstance(model, SensorModel)
     assert isinstance(type(model).supports_deskew, bool)  # a class attribute, no probing
+    assert isinstance(type(model).supports_range_scale, bool)
     assert dataclasses.is_dataclass(model.params)
     with pytest.raises(dataclasses.FrozenInstanceError):
         model.params.squash_factor = 1.0
@@ -171,10 +172,34 @@ def test_scratch_gives_back_the_tiles_built_inside_it(table_cache):
     assert lf.locality_order(xy).tolist() == [0, 1, 2, 3]
 
 
+def test_the_range_scale_is_in_the_protocol_and_the_likelihood_field_declines_it(table_cache):
+    """The beam model's probe casts the beams as its likelihood does and takes a new scale; the likelihood
+    field casts no ranges: it says so in its class attribute and refuses both calls."""
+    m = corridor_map()
+    beam = make("beam", range_scale_estimation=True)
+    beam.set_map(m)
+    assert beam.supports_range_scale
+    offsets = np.zeros((ANGLES.size, 3))
+    offsets[:, 0] = np.linspace(0.0, 0.1, ANGLES.size)
+    probe = beam.range_probe(ANGLES, offsets, range_max=30.0)
+    poses = np.array([TRUTH, TRUTH + [0.1, 0.0, 0.0]])
+    assert np.array_equal(probe.cast(poses), beam.expected_ranges(poses, ANGLES, offsets))
+    assert probe.reach == beam.table_range and probe.z_max == beam.max_range_for(30.0)
+    assert probe.wall_depth == beam.params.map_wall_depth
+    beam.set_range_scale(1.02)
+    assert beam.params.lidar_scale_to_map_scale == 1.02
+    lf = make("likelihood_field")
+    assert not lf.supports_range_scale
+    with pytest.raises(ValueError):
+        lf.range_probe(ANGLES)
+    with pytest.raises(ValueError):
+        lf.set_range_scale(1.02)
+
+
 def test_nothing_probes_or_pokes_a_sensor_model():
     """No getattr probing of sensor-model members and no attribute written from outside a model."""
     root = Path(__file__).resolve().parents[1] / "localization"
-    probe = re.compile(r"getattr\([^)]*[\"'](supports_deskew|ray_caster|laser_offset)[\"']")
+    probe = re.compile(r"getattr\([^)]*[\"'](supports_\w+|ray_caster|laser_offset|last_beams_used)[\"']")
     poke = re.compile(r"sensor(_model)?\.(laser_offset\w*|map|ray_caster|sigma_hit|z_max)\s*=[^=]")
     found = [f"{path.relative_to(root)}:{n}: {line.strip()}" for path in root.rglob("*.py")
              for n, line in enumerate(path.read_text().splitlines(), 1) if probe.search(line) or poke.search(line)]

@@ -32,7 +32,7 @@ class GlobalSeeder:
         """Particles uniform over the free space; with global_init scan the next scan re-seeds them."""
         pf.resize(self.count)
         pf.initialize_uniform(occupancy_map)
-        pf.kld_hold = True
+        pf.hold_count(True)
         self.pending = self.params.global_init == "scan"
 
     def seed(self, pf: MonteCarloLocalizer, occupancy_map: OccupancyMap, ranges, angles, range_max: float) -> None:
@@ -50,7 +50,7 @@ class GlobalSeeder:
 
     def converged(self, pf: MonteCarloLocalizer, pose) -> None:
         """The spread has converged: back to num_particles (KLD shrinks an adaptive cloud itself)."""
-        pf.kld_hold = False
+        pf.hold_count(False)
         if pf.kld is None:
             pf.resize(self.params.num_particles)
         self.log.info(f"global localization converged at ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f}): "

@@ -35,7 +35,6 @@ import logging
 import math
 import threading
 from collections import deque
-from functools import partial
 
 import numpy as np
 
@@ -53,21 +52,27 @@ from localization.core.range_scale import RangeScaleEstimator
 from localization.core.recovery import RecoveryPolicy, SwitchGlide
 from localization.core.scan import ScanData, scan_time
 from localization.core.scan_step import ScanStep, StepOutcome
-from localization.core.sensors.beam import BeamModel, BeamModelParams, sweep_offsets
+from localization.core.sensors import SensorModel
+from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
 from localization.core.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
 
-__all__ = ["Localizer", "PoseEstimate", "build_filter"]
+__all__ = ["Localizer", "PoseEstimate", "build_filter", "build_sensor_model"]
 
-def build_filter(params: Parameters, rng=None) -> MonteCarloLocalizer:
-    """The particle filter and its models, configured from parameters (the table's names)."""
+def build_sensor_model(params: Parameters) -> SensorModel:
+    """The sensor model the ``sensor_model`` parameter names, configured from parameters."""
+    if params.sensor_model == "likelihood_field":
+        return LikelihoodFieldModel(LikelihoodFieldParams.from_parameters(params))
+    return BeamModel(BeamModelParams.from_parameters(params))
+
+
+def build_filter(params: Parameters, rng=None, sensor: SensorModel | None = None) -> MonteCarloLocalizer:
+    """The particle filter and its models, configured from parameters (the table's names); ``sensor``:
+    the sensor model to use (None: ``build_sensor_model``)."""
     rng = rng if rng is not None else np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
     motion = MotionModel(params.deterministic, rng, MotionNoiseParams.from_parameters(params))
-    if params.sensor_model == "likelihood_field":
-        sensor = LikelihoodFieldModel(LikelihoodFieldParams.from_parameters(params))
-    else:
-        sensor = BeamModel(BeamModelParams.from_parameters(params))
+    sensor = build_sensor_model(params) if sensor is None else sensor
     kld = KLDSampler.from_parameters(params) if params.adaptive_particles else None
     return MonteCarloLocalizer(motion, sensor, params.num_particles, params.resample_ess_fraction,
                                (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng, kld)
@@ -98,7 +103,8 @@ class Localizer:
         self.warn = ThrottledLog(self.log)
         self._lock = threading.Lock()
         self._inbox: deque[TwistData] = deque()  # odometry not yet in the timeline (lock-free append)
-        self._pf = build_filter(p)
+        self._model = build_sensor_model(p)  # shared with the filter, the seeder and the challenger
+        self._pf = build_filter(p, sensor=self._model)
         self._timeline = OdometryTimeline(OdometryLimits.from_parameters(p))
         self._queue = ScanQueue(p.scan_max_wait, p.scan_queue_size)
         self._policy = UpdatePolicy(UpdatePolicyParams.from_parameters(p))
@@ -114,7 +120,7 @@ class Localizer:
         self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
         self._range_scale = None  # RangeScaleEstimator (range_scale_estimation with the beam model)
         if p.range_scale_estimation:
-            if isinstance(self._pf.sensor_model, BeamModel):
+            if self._model.supports_range_scale:
                 self._range_scale = RangeScaleEstimator.from_parameters(p)
             else:
                 self.log.info("range_scale_estimation: the likelihood field does not learn the range scale "
@@ -130,7 +136,7 @@ class Localizer:
     status = property(lambda self: self._recovery.status, doc="tracking, or: scans disagree with the map")
     num_particles = property(lambda self: self._pf.num_particles)
     global_mode = property(lambda self: self._pf.kld_hold, doc="a global spread, not yet converged")
-    laser_offset = property(lambda self: np.array(self._pf.sensor_model.laser_offset, dtype=float))
+    laser_offset = property(lambda self: np.array(self._model.laser_offset, dtype=float))
     waiting_scans = property(lambda self: len(self._queue), doc="scans waiting for odometry to reach them")
 
     beams_used = property(lambda self: self._pf.beams_used,
@@ -169,13 +175,13 @@ class Localizer:
             self._apply_held_pose()
 
     def map_preparation(self, occupancy_map: OccupancyMap):  # slow? and a note for the log
-        return self._pf.sensor_model.preparation(occupancy_map)
+        return self._model.preparation(occupancy_map)
 
     def prepare_ray_caster(self, occupancy_map: OccupancyMap):
         """The slow part of ``set_map`` (the sensor model's ``prepare``), safe on another thread."""
         self.map_pending = True
         ensure_compiled(self.params, self.log)
-        return self._pf.sensor_model.prepare(occupancy_map)
+        return self._model.prepare(occupancy_map)
 
     def set_map(self, occupancy_map: OccupancyMap, prepared=None) -> None:
         """Use a (new) map; particles are kept if some stay in free space. No free space: MapError."""
@@ -184,15 +190,15 @@ class Localizer:
         if prepared is None:
             ensure_compiled(self.params, self.log)
         with self._lock:
-            self._pf.sensor_model.set_map(occupancy_map, prepared)
+            self._model.set_map(occupancy_map, prepared)
             if self._range_scale is not None:  # a new map: its scale is learnt anew
                 self._range_scale.reset()
-                self._pf.sensor_model.set_range_scale(self._range_scale.scale)
+                self._model.set_range_scale(self._range_scale.scale)
             self.map, self.map_pending = occupancy_map, False
-            self._recovery.set_map(occupancy_map, self._pf.sensor_model.laser_offset)
+            self._recovery.set_map(occupancy_map, self._model.laser_offset)
             if self._pf.initialized and occupancy_map.is_occupied_or_outside(self._pf.particles[:, :2]).all():
                 self.log.warning("new map: no particle lies in free space any more; waiting for a new initial pose")
-                self._pf.initialized = False
+                self._pf.forget()
                 self._timeline.set_anchor(None)
             elif not self._pf.initialized and self.params.global_localization:
                 self._spread_locked(self._timeline.latest)
@@ -202,7 +208,7 @@ class Localizer:
         """The laser pose (x, y, yaw) in the robot frame, e.g. read from TF."""
         offset = np.asarray(offset, dtype=float).reshape(3)
         with self._lock:
-            self._pf.sensor_model.set_laser_offset(offset)
+            self._model.set_laser_offset(offset)
             self._recovery.set_laser_offset(offset)
 
     def request_update(self) -> None:
@@ -222,7 +228,7 @@ class Localizer:
             return False
         with self._lock:
             self._pf.resize(self.params.num_particles)
-            self._pf.kld_hold = False
+            self._pf.hold_count(False)
             self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
             self._after_init_locked(stamp, temper=True)
         return True
@@ -361,9 +367,8 @@ class Localizer:
     def _update_range_scale(self, out: StepOutcome) -> None:
         """The range scale after a tracking sensor update: the beams that update used (deskewed as it
         deskewed them) against the ranges ray cast at its estimate (``core.range_scale``)."""
-        model, (rmin, rmax), beams = self._pf.sensor_model, out.range_limits, out.beams
-        offsets = sweep_offsets(out.offsets, beams.ranges.size)  # as the sensor update casts them
-        cast = partial(model.expected_ranges, angles=beams.angles, offsets=offsets)  # poses (k, 3) -> (k, B)
-        if self._range_scale.update(beams.ranges, cast, out.estimate.pose, rmin, model.max_range_for(rmax),
-                                    model.table_range, out.estimate.covariance, model.params.map_wall_depth):
-            model.set_range_scale(self._range_scale.scale)
+        (rmin, rmax), beams = out.range_limits, out.beams
+        probe = self._model.range_probe(beams.angles, out.offsets, rmax)
+        if self._range_scale.update(beams.ranges, probe.cast, out.estimate.pose, rmin, probe.z_max, probe.reach,
+                                    out.estimate.covariance, probe.wall_depth):
+            self._model.set_range_scale(self._range_scale.scale)

@@ -41,6 +41,18 @@ class Estimate:
     covariance: np.ndarray  # (3, 3) over x, y, θ
 
 
+@dataclass(frozen=True)
+class Snapshot:
+    """A cloud as it was (copies of its particles and log weights), for ``MonteCarloLocalizer.restore``."""
+
+    particles: np.ndarray  # (N, 3)
+    log_weights: np.ndarray  # (N,)
+
+    def estimate(self) -> Estimate:
+        """The estimate of this cloud (as ``MonteCarloLocalizer.estimate`` gives it once restored)."""
+        return estimate_of(self.particles, self.log_weights)
+
+
 @dataclass
 class SensorUpdateResult:
     ok: bool  # False when every particle had likelihood 0 (weights left unchanged)
@@ -107,14 +119,23 @@ class MonteCarloLocalizer:
         self.num_particles = len(self.particles)
         self._reset_weights()
 
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+    def snapshot(self) -> Snapshot:
         """The particles and their log weights (copies), for ``restore``."""
-        return self.particles.copy(), self.log_weights.copy()
+        return Snapshot(self.particles.copy(), self.log_weights.copy())
 
-    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
+    def restore(self, snapshot: Snapshot) -> None:
         """Back to a ``snapshot`` (an update undone); the snapshot's arrays become the filter's."""
-        self.particles, self.log_weights = snapshot
+        self.particles, self.log_weights = snapshot.particles, snapshot.log_weights
         self.num_particles = len(self.particles)
+
+    def forget(self) -> None:
+        """The cloud no longer describes the robot (a new map with none of it in free space): not
+        initialised until the next initialisation."""
+        self.initialized = False
+
+    def hold_count(self, hold: bool) -> None:
+        """Keep the particle count even with a KLD sampler (True: a global spread), or let it adapt."""
+        self.kld_hold = bool(hold)
 
     def _reset_weights(self) -> None:
         self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
@@ -173,7 +194,7 @@ class MonteCarloLocalizer:
         log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
                                                    range_max=range_max)
         # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
-        self.beams_used = (getattr(self.sensor_model, "last_beams_used", None), int(np.size(ranges)))
+        self.beams_used = (self.sensor_model.last_beams_used, int(np.size(ranges)))
         return log_lik
 
     def _weigh(self, log_factor) -> float | None:
@@ -200,7 +221,7 @@ class MonteCarloLocalizer:
         """Systematic resampling, then the regularised kernel's jitter N(0, h² Σ) (Σ: the weighted
         covariance before resampling, θ wrapped; h the Gaussian kernel's optimal bandwidth for d = 3)."""
         n = self.num_particles
-        cov = self._weighted_covariance(weights)
+        cov = weighted_covariance(self.particles, weights)
         h = (4.0 / (n * 5.0)) ** (1.0 / 7.0)
         # a floor of the ordinary roughening keeps Σ positive definite when the cloud is degenerate
         chol = np.linalg.cholesky(cov + np.diag(np.maximum(self.roughening, 1e-6) ** 2))
@@ -209,14 +230,6 @@ class MonteCarloLocalizer:
         drawn[:, 2] = wrap_angle(drawn[:, 2])
         self.particles = drawn
         self._reset_weights()
-
-    def _weighted_covariance(self, weights) -> np.ndarray:
-        x = float(np.dot(weights, self.particles[:, 0]))
-        y = float(np.dot(weights, self.particles[:, 1]))
-        th = circular_mean(self.particles[:, 2], weights)
-        diff = self.particles - np.array([x, y, th])
-        diff[:, 2] = wrap_angle(diff[:, 2])
-        return (diff * weights[:, None]).T @ diff
 
     def resample(self, weights=None) -> None:
         """Systematic (low-variance) resampling, then roughening."""
@@ -252,16 +265,36 @@ class MonteCarloLocalizer:
     # ------------------------------------------------------------------ estimate
     @property
     def weights(self) -> np.ndarray:
-        w = np.exp(self.log_weights - self.log_weights.max())
-        return w / w.sum()
+        return normalised_weights(self.log_weights)
 
     def estimate(self) -> Estimate:
         """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped)."""
-        w = self.weights
-        x = float(np.dot(w, self.particles[:, 0]))
-        y = float(np.dot(w, self.particles[:, 1]))
-        th = circular_mean(self.particles[:, 2], w)
-        return Estimate(np.array([x, y, th]), self._weighted_covariance(w))
+        return estimate_of(self.particles, self.log_weights)
+
+
+def normalised_weights(log_weights) -> np.ndarray:
+    """exp(log_weights), normalised to sum to 1."""
+    w = np.exp(log_weights - log_weights.max())
+    return w / w.sum()
+
+
+def weighted_covariance(particles, weights) -> np.ndarray:
+    """The weighted covariance (3, 3) of particles (N, 3) about their weighted mean (θ: circular, wrapped)."""
+    x = float(np.dot(weights, particles[:, 0]))
+    y = float(np.dot(weights, particles[:, 1]))
+    th = circular_mean(particles[:, 2], weights)
+    diff = particles - np.array([x, y, th])
+    diff[:, 2] = wrap_angle(diff[:, 2])
+    return (diff * weights[:, None]).T @ diff
+
+
+def estimate_of(particles, log_weights) -> Estimate:
+    """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped) of a cloud."""
+    w = normalised_weights(log_weights)
+    x = float(np.dot(w, particles[:, 0]))
+    y = float(np.dot(w, particles[:, 1]))
+    th = circular_mean(particles[:, 2], w)
+    return Estimate(np.array([x, y, th]), weighted_covariance(particles, w))
 
 
 def effective_sample_size(log_weights) -> float:

@@ -10,7 +10,10 @@ benchmarks treat them alike and never look inside one:
     model.set_laser_offset((x, y, yaw))                  # the laser pose in base_link
     model.log_likelihood(particles, ranges, angles, offsets=None, range_max=None)
                                       # (N,) squashed log weights, -inf = impossible
+    model.last_beams_used             # beams the last log_likelihood used (beam skipping leaves some out)
     with model.scratch(): ...         # temporary memory (a tiled table's tiles) given back at the end
+    model.range_probe(angles, offsets, range_max)   # RangeProbe: what learning the range scale needs
+    model.set_range_scale(s)          # use s as lidar_scale_to_map_scale (supports_range_scale models)
 
 z_max, the range of a "no return" reading (metres), is the sensor's: ``laser_max_range`` when it
 is > 0, else the scan's own ``range_max`` (``log_likelihood(..., range_max=)``), else the model's
@@ -19,6 +22,8 @@ fallback (``max_range``); ``resolve_max_range`` is that rule.
 ``beam.BeamModel``: the course's beam model (p_hit, p_short, p_max, p_rand) over ray-cast
 expected ranges, tabulated. ``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood
 field (each beam's end point scored by its distance to the nearest occupied cell; no ray casting).
+Only the beam model casts ranges, so only it can learn the lidar-to-map range scale online
+(``supports_range_scale``; ``core.range_scale``); the likelihood field declares it does not.
 The ``sensor_model`` parameter picks one (``localizer.build_filter``); docs/models.md compares them.
 
 Beam skipping (``do_beamskip``, nav2_amcl's rule, both models): a return from something the map does not
@@ -38,6 +43,7 @@ remove the very evidence that decides between them.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from typing import Any, Protocol, runtime_checkable
@@ -67,6 +73,27 @@ class Preparation:
 
     slow: bool  # seconds of work (a range table to build): prepare off the caller's thread
     note: str  # one line for the log, e.g. "range table: loading it from the cache for the map ..."
+
+
+@dataclass(frozen=True)
+class RangeProbe:
+    """What learning the lidar-to-map range scale from one scan's beams needs (``core.range_scale``)."""
+
+    cast: Callable[[np.ndarray], np.ndarray]  # poses (k, 3) -> (k, B) the beams' ranges ray cast (map metres)
+    z_max: float  # lidar metres: a return at or beyond it is no return
+    reach: float  # map metres: the farthest range the model casts
+    wall_depth: float  # m: how far behind a wall's edge a beam ends (map_wall_depth)
+
+
+def sweep_offsets(offsets, num_beams: int):
+    """``offsets`` as (``num_beams``, 3) per-beam deskew offsets, or None (a rigid scan) when there are
+    none, they are all zero (no motion during the sweep) or unusable (wrong count, non-finite)."""
+    if offsets is None:
+        return None
+    offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
+    if offsets.shape[0] != num_beams or not offsets.any() or not np.all(np.isfinite(offsets)):
+        return None
+    return offsets
 
 
 def skips_beams(particles: np.ndarray, params) -> bool:
@@ -108,6 +135,8 @@ class SensorModel(Protocol):
 
     params: Any  # the model's frozen parameter dataclass
     supports_deskew: bool  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
+    supports_range_scale: bool  # casts ranges: the lidar-to-map range scale can be learnt online
+    last_beams_used: int | None  # beams the last log_likelihood used (beam skipping leaves some out; None: none yet)
 
     @property
     def laser_offset(self) -> np.ndarray:
@@ -153,5 +182,15 @@ class SensorModel(Protocol):
         identity for models without such memory."""
         ...
 
+    def range_probe(self, angles, offsets=None, range_max=None) -> RangeProbe:
+        """What learning the range scale from the beams at ``angles`` (rad; ``offsets`` (B, 3) a deskewed
+        sweep's, ``range_max`` the scan's, m) needs. ValueError from a model without ``supports_range_scale``."""
+        ...
 
-__all__ = ["Preparation", "SensorModel", "resolve_max_range"]
+    def set_range_scale(self, scale: float) -> None:
+        """Use ``scale`` as lidar_scale_to_map_scale (an online estimate). ValueError from a model without
+        ``supports_range_scale``."""
+        ...
+
+
+__all__ = ["Preparation", "RangeProbe", "SensorModel", "resolve_max_range", "sweep_offsets"]

@@ -69,7 +69,15 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
 from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
+from localization.core.sensors import (
+    LaserMount,
+    Preparation,
+    RangeProbe,
+    beam_mask,
+    resolve_max_range,
+    skips_beams,
+    sweep_offsets,
+)
 
 if HAVE_NUMBA:
     from numba import njit
@@ -129,31 +137,18 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
     sigma = p.sigma_hit / p.table_resolution  # table cells
     z = np.arange(n, dtype=float)[:, None]  # rows: measured range
     d = np.arange(n, dtype=float)[None, :]  # columns: expected range
-
     p_hit = np.exp(-0.5 * ((z - d) / sigma) ** 2) / np.sqrt(2.0 * np.pi * sigma ** 2)
     p_hit = p_hit / p_hit.sum(axis=0, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         p_short = np.where((z <= d) & (d > 0), 2.0 / d * (1.0 - z / d), 0.0)
     p_max = np.where(z == n - 1, 1.0, 0.0) * np.ones_like(d)
     p_rand = np.full((n, n), 1.0 / (n - 1))
-
     table = (p.alpha_hit * p_hit + p.alpha_short * p_short + p.alpha_max * p_max + p.alpha_rand * p_rand)
     column_sums = table.sum(axis=0, keepdims=True)
     if not np.any(column_sums > 0):
         raise ValueError("sensor model alphas are all zero; at least one must be > 0")
     # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
     return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
-
-
-def sweep_offsets(offsets, num_beams: int):
-    """``offsets`` as (``num_beams``, 3) per-beam deskew offsets, or None (a rigid scan) when there are
-    none, they are all zero (no motion during the sweep) or unusable (wrong count, non-finite)."""
-    if offsets is None:
-        return None
-    offsets = np.asarray(offsets, dtype=float).reshape(-1, 3)
-    if offsets.shape[0] != num_beams or not offsets.any() or not np.all(np.isfinite(offsets)):
-        return None
-    return offsets
 
 
 class BeamModel(LaserMount):
@@ -165,6 +160,7 @@ class BeamModel(LaserMount):
     on use (``precompute_sensor_model()``, as the course's code calls it, rebuilds at once)."""
 
     supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
+    supports_range_scale = True  # casts ranges: the range scale can be learnt online (range_probe)
 
     def __init__(self, params: BeamModelParams | None = None, *, occupancy_map: OccupancyMap | None = None,
                  laser_offset=None, **overrides):
@@ -263,6 +259,12 @@ class BeamModel(LaserMount):
         """Use ``scale`` as lidar_scale_to_map_scale (an online estimate, ``core.range_scale``); the
         tables, which do not depend on it, are kept."""
         self.params = replace(self.params, lidar_scale_to_map_scale=float(scale))
+
+    def range_probe(self, angles, offsets=None, range_max=None) -> RangeProbe:
+        """The beams cast as ``log_likelihood`` casts them, z_max, the table's reach and the wall depth."""
+        offsets = sweep_offsets(offsets, np.size(angles))
+        return RangeProbe(lambda poses: self.expected_ranges(poses, angles, offsets), self.max_range_for(range_max),
+                          self.table_range, self.params.map_wall_depth)
 
     # ------------------------------------------------------------------ the map
     def preparation(self, occupancy_map: OccupancyMap) -> Preparation:

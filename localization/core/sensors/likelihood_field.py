@@ -106,6 +106,7 @@ class LikelihoodFieldModel(LaserMount):
     ``sensors.SensorModel``, as ``BeamModel``."""
 
     supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
+    supports_range_scale = False  # casts no ranges: the range scale cannot be learnt (range_probe)
 
     def __init__(self, params: LikelihoodFieldParams | None = None, *, occupancy_map: OccupancyMap | None = None,
                  laser_offset=None, use_numba: bool = HAVE_NUMBA, **overrides):
@@ -225,6 +226,12 @@ class LikelihoodFieldModel(LaserMount):
     def locality_order(self, xy) -> np.ndarray:
         """The identity: the field has no parts to keep together."""
         return np.arange(len(np.asarray(xy).reshape(-1, 2)))
+
+    def range_probe(self, angles, offsets=None, range_max=None):
+        raise ValueError("the likelihood field casts no ranges: it cannot learn the range scale")
+
+    def set_range_scale(self, scale: float) -> None:
+        raise ValueError("the likelihood field has no range scale to set (lidar_scale_to_map_scale is unused)")
 
     # ------------------------------------------------------------------ evaluation
     def default_angles(self, num_beams: int) -> np.ndarray:
