@@ -2,6 +2,8 @@
 ``--help`` and docs/node.md generated from the table, robot files holding only their robot's values."""
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -54,6 +56,14 @@ def test_help_text_lists_every_parameter_under_its_group_with_default_rule_and_d
             seen[name] = group
     assert list(seen) == [p.name for g in GROUPS for p in PARAMETERS if p.group == g]
     assert len(seen) == len(PARAMETERS)
+
+
+def test_particle_filter_help_prints_every_parameter_with_its_description():
+    """A pip-only user has no ``ros2 param describe``: ``--help`` is their reference."""
+    out = subprocess.run([sys.executable, "-m", "localization.particle_filter", "--help"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("usage:"), out.stderr
+    assert P.help_text() in out.stdout
 
 
 def test_show_value_writes_defaults_as_a_parameter_file_does():
