@@ -88,6 +88,48 @@ def _peak_rss_mb(pid: int) -> dict:
     return {"node_peak_rss_mb": out.get("VmHWM"), "node_rss_mb": out.get("VmRSS")}
 
 
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time (s) the process has used so far (/proc/PID/stat), None when unreadable."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+class _Sampler(threading.Thread):
+    """Every ``period`` seconds: (seconds since start, the node's RSS in MB, its CPU seconds)."""
+
+    def __init__(self, pid: int, period: float = 5.0):
+        super().__init__(daemon=True)
+        self.pid, self.period = pid, period
+        self.samples: list[tuple[float, float | None, float | None]] = []
+        self.t0 = time.monotonic()
+        self.stop = threading.Event()
+
+    def sample(self) -> None:
+        self.samples.append((time.monotonic() - self.t0, _peak_rss_mb(self.pid)["node_rss_mb"],
+                             _cpu_seconds(self.pid)))
+
+    def run(self) -> None:
+        self.sample()
+        while not self.stop.wait(self.period):
+            self.sample()
+
+
+def _windows(lat: np.ndarray, when: np.ndarray, samples, window: float) -> list[dict]:
+    """Per ``window`` seconds of stream: scan -> pose latency median/p95, and the node's RSS at its end."""
+    out = []
+    for k in range(int(np.ceil(when.max() / window)) if when.size else 0):
+        sel = (when >= k * window) & (when < (k + 1) * window)
+        rss = [r for t, r, _ in samples if r is not None and t <= (k + 1) * window]
+        out.append({"start_s": k * window, "scans": int(sel.sum()),
+                    "latency_ms_median": float(np.median(lat[sel])) if sel.any() else None,
+                    "latency_ms_p95": float(np.percentile(lat[sel], 95)) if sel.any() else None,
+                    "rss_mb_end": rss[-1] if rss else None})
+    return out
+
+
 def _us(stamp_ns: int, offset_s: float) -> int:
     """The time ``stamp + offset`` in whole microseconds (the node computes it in float seconds)."""
     return stamp_ns // 1000 + round(offset_s * 1e6)
@@ -101,9 +143,12 @@ def _match(us: int, sent: dict):
     return None
 
 
-def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: str | None = None,
-                    params_file=None, ready_timeout: float = 180.0, progress=None, extra_params=()) -> dict:
-    """Run the node, stream the real bags into it at real time, return the latency statistics."""
+def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_caster: str | None = None,
+                    params_file=None, ready_timeout: float = 180.0, progress=None, extra_params=(),
+                    every_scan: bool = True, window: float = 300.0) -> dict:
+    """Run the node, stream the real bags into it at real time, return the latency statistics.
+    ``particles`` None: the parameter file's; ``every_scan`` False: the file's update policy (as on
+    the car) instead of a sensor update for every scan; ``window``: seconds per row of ``windows``."""
     say = progress or (lambda msg: None)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(101, 200)))
@@ -131,13 +176,17 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
 
     log = tempfile.NamedTemporaryFile(prefix="latency-node-", suffix=".log", delete=False)
     # every scan updates the filter (no minimum travel between updates): the worst case
+    from localization.core.parameters import Parameters
+    if particles is None:
+        particles = Parameters.from_yaml(params_file).num_particles
     cmd = [sys.executable, "-m", "localization.particle_filter", "--ros-args", "--params-file", str(params_file),
-           "-p", f"num_particles:={particles}", "-p", "random_seed:=0", "-p", "update_min_distance:=0.0",
-           "-p", "update_min_angle:=0.0", "-p", "odom_topic:=/vesc/odom", "-p", "scan_topic:=/scan"]
+           "-p", f"num_particles:={particles}", "-p", "random_seed:=0", "-p", "odom_topic:=/vesc/odom",
+           "-p", "scan_topic:=/scan"]
+    if every_scan:
+        cmd += ["-p", "update_min_distance:=0.0", "-p", "update_min_angle:=0.0"]
     if ray_caster:
         cmd += ["-p", f"ray_caster:={ray_caster}"]
     else:
-        from localization.core.parameters import Parameters
         ray_caster = Parameters.from_yaml(params_file).ray_caster
     for item in extra_params:  # NAME:=VALUE
         cmd += ["-p", item]
@@ -205,7 +254,6 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
         return False
 
     scans_sent, odoms_sent = {}, {}  # µs of the time the output describes -> (header stamp ns, stream time s)
-    from localization.core.parameters import Parameters
     from localization.core.scan import scan_time
     from localization.ros.conversions import scan_from_msg
     node_params = Parameters.from_yaml(params_file)
@@ -215,7 +263,9 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
         scan = scan_from_msg(msg)
         return scan_time(scan, node_params.scan_stamp, node_params.scan_stamp_offset) - scan.stamp
     result = {"particles": particles, "ray_caster": ray_caster, "scan_hz": 40.0, "odom_hz": 50.0,
-              "extra_params": list(extra_params), "load_average_start": os.getloadavg()[0]}
+              "every_scan": every_scan, "extra_params": list(extra_params),
+              "load_average_start": os.getloadavg()[0]}
+    sampler = None
     try:
         say("waiting for the node (map + initial pose; a cold start builds the range table) ...")
         t_wait = time.perf_counter()
@@ -225,6 +275,8 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
             return {"error": f"the node did not become ready within {ready_timeout:.0f} s; its log ends:\n{tail}"}
         result["node_ready_s"] = time.perf_counter() - t_wait
         say(f"streaming the real bags at real time for {duration:g} s ...")
+        sampler = _Sampler(node_proc.pid)
+        sampler.start()
         streamed = 0.0
         rounds = 0
         while streamed < duration:
@@ -252,9 +304,13 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
                 streamed += min(msgs[-1][0], duration - streamed)
             rounds += 1
         time.sleep(1.0)  # let the last outputs arrive
+        sampler.stop.set()
+        sampler.sample()
         result.update(_peak_rss_mb(node_proc.pid))
         result["load_average_end"] = os.getloadavg()[0]
     finally:
+        if sampler is not None:
+            sampler.stop.set()
         if node_proc.poll() is None:
             node_proc.send_signal(signal.SIGINT)
             try:
@@ -288,6 +344,15 @@ def measure_latency(particles: int = 4000, duration: float = 20.0, ray_caster: s
     result["node_breakdown"] = breakdown[-1] if breakdown else None
     lat, when = np.asarray(scan_lat), np.asarray(scan_when)
     half = when < np.median(when)
+    samples = sampler.samples
+    cpu = [(t, c) for t, _, c in samples if c is not None]
+    rss = [(t, r) for t, r, _ in samples if r is not None]
+    after_first_minute = [r for t, r in rss if t >= 60.0]
+    result.update(
+        node_cpu_share=(cpu[-1][1] - cpu[0][1]) / (cpu[-1][0] - cpu[0][0]) if len(cpu) > 1 else None,
+        rss_growth_after_first_minute_mb=(after_first_minute[-1] - after_first_minute[0])
+        if len(after_first_minute) > 1 else None,
+        windows=_windows(lat, when, samples, window))
     result.update(
         duration_s=duration, scans_sent=len(scan_lat) + len(scans_sent), poses_from_scans=len(scan_lat),
         scans_skipped=len(scans_sent), processed_fraction=len(scan_lat) / max(1, len(scan_lat) + len(scans_sent)),
@@ -314,13 +379,18 @@ def format_latency(lat: dict) -> str:
             "lost)")
 
 
+def _pct(share) -> str:
+    return "n/a" if share is None else f"{100 * share:.1f} %"
+
+
 def format_result(r: dict) -> str:
     text = format_latency(r)
     if "error" not in r:
         text += (f"\n  first half median {r['latency_ms_median_first_half']:.1f} ms, second half "
                  f"{r['latency_ms_median_second_half']:.1f} ms (growing = queueing); odometry -> pose median "
                  f"{r['odom_latency_ms_median']:.1f} ms, p95 {r['odom_latency_ms_p95']:.1f} ms over "
-                 f"{r['odom_poses']} messages\n  node peak RSS {r['node_peak_rss_mb']:.0f} MB; ready "
+                 f"{r['odom_poses']} messages\n  node peak RSS {r['node_peak_rss_mb']:.0f} MB; node CPU "
+                 f"{_pct(r['node_cpu_share'])} of one core (CPU seconds per second of real-time stream); ready "
                  f"{r['node_ready_s']:.1f} s after start; load average {r['load_average_start']:.1f} -> "
                  f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}"
                  f"\n  where the time went inside the node (scan received -> pose published; wait = queued for "
