@@ -244,6 +244,8 @@ PARAMETERS = _grouped(
     Param("range_table_lazy_cells", 10_000_000, "bigger maps build the range table per tile, where needed",
           *_int(0)),
     Param("sensor_update_thread", False, "run the sensor update on its own thread", *_BOOL),
+    Param("num_threads", 1, "CPU threads of the beam model's sensor update (the same weights as one thread)",
+          *_int(1, 256)),
     "output",
     Param("publish_tf", "map_to_particle_filter_frame", "the transform to broadcast",
           _one_of("map_to_particle_filter_frame", "map_to_odom", "none"),

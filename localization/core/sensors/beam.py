@@ -80,7 +80,7 @@ from localization.core.sensors import (
 )
 
 if HAVE_NUMBA:
-    from numba import njit
+    from numba import njit, prange
 
     from localization.core.raycast.kernels import beam_ranges, locate, refine
 
@@ -109,6 +109,7 @@ class BeamModelParams:
     ray_caster: str = default("ray_caster", course=True)
     scan_theta_discretization: int = default("scan_theta_discretization", course=True)
     range_table_lazy_cells: int = default("range_table_lazy_cells", course=True)  # larger maps: table per tile
+    num_threads: int = default("num_threads", course=True)  # the fused pass over blocks of particles
     do_beamskip: bool = default("do_beamskip", course=True)  # leave out beams few particles explain
     beam_skip_distance: float = default("beam_skip_distance", course=True)  # m: |s·z − o − d| that explains a beam
     beam_skip_threshold: float = default("beam_skip_threshold", course=True)  # share of particles
@@ -149,6 +150,22 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
         raise ValueError("sensor model alphas are all zero; at least one must be > 0")
     # A column can only sum to 0 when p_short is the sole component (d = 0): it stays 0.
     return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
+
+
+MIN_PARTICLES_PER_THREAD = 256  # fewer particles per thread: the threads' start costs more than they save
+
+
+def kernel_threads(num_threads: int, num_particles: int) -> int:
+    """Threads for a fused pass over ``num_particles`` (``num_threads`` asked, at most numba's pool and one
+    per MIN_PARTICLES_PER_THREAD particles); numba's pool is set to that many for the call."""
+    threads = min(int(num_threads), num_particles // MIN_PARTICLES_PER_THREAD)
+    if threads <= 1 or not HAVE_NUMBA:
+        return 1
+    import numba
+    threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+    if threads > 1:
+        numba.set_num_threads(threads)
+    return threads
 
 
 class BeamModel(LaserMount):
@@ -393,8 +410,13 @@ class BeamModel(LaserMount):
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
         skip = skips_beams(particles, p)
         cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
-        _fused_kernel(particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
-                      1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
+        args = (particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
+                1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
+        threads = kernel_threads(p.num_threads, particles.shape[0])
+        if threads > 1:
+            _fused_kernel_parallel(threads, *args)
+        else:
+            _fused_kernel(*args)
         if skip:
             return self._skipped_sum(log_rows, z, cols, np.isfinite(out))
         self.last_beams_used = angles.size
@@ -434,11 +456,11 @@ class BeamModel(LaserMount):
 
 if HAVE_NUMBA:
     @njit(cache=True, nogil=True)
-    def _fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
-                      occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
-                      bins_per_metre, z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
-        """out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for particles off the map
-        or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b (columns
+    def _fused_rows(lo, hi, particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
+                    occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
+                    bins_per_metre, z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
+        """For particles lo … hi − 1: out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for
+        particles off the map or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b (columns
         0 … z_max); (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, map
         cells; ``bins_per_metre``: 1 / table_resolution. ``cols_out`` (N, B), unless it has no rows:
         also each particle's table column d_b (rows of impossible particles are left unwritten)."""
@@ -453,7 +475,7 @@ if HAVE_NUMBA:
         blind = 0.0  # a laser outside free space sees 0 on every beam
         for b in range(n_beams):
             blind += log_rows[b, 0]
-        for i in range(particles.shape[0]):
+        for i in range(lo, hi):
             px = particles[i, 0]
             py = particles[i, 1]
             pth = particles[i, 2]
@@ -492,9 +514,34 @@ if HAVE_NUMBA:
                 if write:
                     cols_out[i, b] = col
             out[i] = total / squash_factor
+
+    @njit(cache=True, nogil=True)
+    def _fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw, occupied,
+                      index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv, bins_per_metre,
+                      z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
+        """The fused pass over every particle (``_fused_rows``), on this thread."""
+        _fused_rows(0, particles.shape[0], particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution,
+                    map_yaw, occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
+                    bins_per_metre, z_max, log_rows, squash_factor, out, cols_out)
+
+    @njit(cache=True, nogil=True, parallel=True)
+    def _fused_kernel_parallel(n_blocks, particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution,
+                               map_yaw, occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode,
+                               beam_du, beam_dv, bins_per_metre, z_max, log_rows, squash_factor, out,
+                               cols_out):  # pragma: no cover - compiled
+        """The same pass with the particles cut into ``n_blocks`` contiguous blocks run on numba's threads:
+        each particle's sum is computed exactly as on one thread (the same weights, bit for bit)."""
+        n = particles.shape[0]
+        for blk in prange(n_blocks):
+            _fused_rows(blk * n // n_blocks, (blk + 1) * n // n_blocks, particles, off_x, off_y, off_th, map_ox,
+                        map_oy, map_c, map_s, resolution, map_yaw, occupied, index, table, blocking, beam_f, beam_c,
+                        beam_s, consts, mode, beam_du, beam_dv, bins_per_metre, z_max, log_rows, squash_factor, out,
+                        cols_out)
+
     # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
     from localization.core.compile_cache import drop_if_older
     from localization.core.raycast import kernels as _kernels
-    drop_if_older(_fused_kernel, _kernels.__file__)
+    for _kernel in (_fused_rows, _fused_kernel, _fused_kernel_parallel):
+        drop_if_older(_kernel, _kernels.__file__)
 else:  # pragma: no cover
-    _fused_kernel = None
+    _fused_kernel = _fused_kernel_parallel = None
