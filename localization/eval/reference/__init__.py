@@ -126,9 +126,10 @@ The stages, one module each, in the order a bag goes through them: ``inputs`` (t
 scans, each scan's beams), ``odometry`` (dead reckoning and its noise), ``information`` (step 2),
 ``tracker`` (step 1, one scan after another), ``matching`` (step 1 for a whole bag: the start),
 ``smoother`` (step 3), ``marginals`` (step 4: the smoothed track's uncertainty), ``checks`` (step 4:
-where a scan is scored), ``track`` (the reference track of a bag), ``errors`` (along-/cross-track
-errors), ``plot`` and ``cli``; ``constants`` holds the fixed settings, ``geometry`` the pose-track
-arithmetic they share.
+where a scan is scored), ``track`` (the reference track of a bag, a ``result.ReferenceTrack``),
+``cache`` (the track kept on disk by the bag's content and the yardstick's arguments and code),
+``errors`` (along-/cross-track errors), ``plot`` and ``cli``; ``constants`` holds the fixed settings,
+``geometry`` the pose-track arithmetic they share.
 """
 from __future__ import annotations
 
@@ -137,9 +138,7 @@ from localization.eval.reference.checks import (
     odometry_consistency,
     pose_fit,
 )
-from localization.eval.reference.cli import (
-    main,
-)
+from localization.eval.reference.cli import main
 from localization.eval.reference.constants import (
     CHI2_3_999,
     CHI2_MEDIANS,
@@ -217,22 +216,15 @@ from localization.eval.reference.odometry import (
     odometry_inputs,
     odometry_twist_at,
 )
-from localization.eval.reference.plot import (
-    plot_reference,
-)
+from localization.eval.reference.plot import plot_reference
+from localization.eval.reference.result import ReferenceTrack
 from localization.eval.reference.smoother import (
     Smoothed,
     fit_offset,
     smooth_track,
 )
-from localization.eval.reference.track import (
-    ReferenceTrack,
-    build_reference,
-    reference_for_bag,
-)
-from localization.eval.reference.tracker import (
-    Matches,
-)
+from localization.eval.reference.track import build_reference, reference_for_bag
+from localization.eval.reference.tracker import Matches
 
 __all__ = [
     "CHI2_3_999",

@@ -13,7 +13,7 @@ from localization.eval.reference.constants import LAG_SEARCH_S, LAG_STEP_S
 from localization.eval.reference.geometry import travel_directions
 
 if TYPE_CHECKING:
-    from localization.eval.reference.track import ReferenceTrack
+    from localization.eval.reference.result import ReferenceTrack
 
 
 @dataclass

@@ -8,7 +8,7 @@ import numpy as np
 from localization.eval.reference.errors import track_errors
 
 if TYPE_CHECKING:
-    from localization.eval.reference.track import ReferenceTrack
+    from localization.eval.reference.result import ReferenceTrack
 
 
 def plot_reference(path, ref: ReferenceTrack, est_t, est_poses, t0: float = 0.0, title: str = ""):

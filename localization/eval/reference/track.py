@@ -2,14 +2,13 @@
 entry per scan."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from localization.core.geometry import compose
 from localization.core.matching import MatcherConfig
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.scan import scan_time
+from localization.eval.reference import cache as C
 from localization.eval.reference.checks import better_fit_elsewhere, odometry_consistency, pose_fit
 from localization.eval.reference.constants import (
     CONSISTENCY_FIT_SHARE,
@@ -24,79 +23,35 @@ from localization.eval.reference.information import constrained_axes
 from localization.eval.reference.inputs import read_odometry, read_scans, scan_beams
 from localization.eval.reference.matching import track_matches
 from localization.eval.reference.odometry import OdometryNoise
+from localization.eval.reference.result import ReferenceTrack
 from localization.eval.reference.smoother import Smoothed, smooth_track
 from localization.eval.reference.tracker import Matches, _empty_matches
-
-
-@dataclass
-class ReferenceTrack:
-    """One entry per scan (package doc)."""
-
-    t: np.ndarray  # (K,) s, the time each pose describes: mid-sweep, scan clock
-    poses: np.ndarray  # (K, 3) smoothed base_link pose in the map
-    laser_poses: np.ndarray  # (K, 3) poses ⊕ mount
-    matched: np.ndarray  # (K, 3) the scan's own match Z_k (NaN: none usable)
-    information: np.ndarray  # (K, 3, 3) Λ_k of the match (0: none)
-    covariance: np.ndarray  # (K, 3, 3) of the smoothed pose
-    std_along: np.ndarray  # (K,) m
-    std_cross: np.ndarray  # (K,) m
-    score: np.ndarray  # (K,) matcher score
-    usable: np.ndarray  # (K,) bool: a match entered the smoothing
-    accepted: np.ndarray  # (K,) bool: ... and agrees with the smoothed track (χ² gate)
-    constrained: np.ndarray  # (K, 5) bool: the accepted match pins x, y, θ, along, across
-    good: np.ndarray  # (K,) bool: scored (smoothed σ along and across ≤ one map cell, within the matches' span,
-    #                   in free space, and the scan fits the map there: ``fit``)
-    odometry: dict = field(default_factory=dict)  # speed/yaw-rate scale, yaw-rate bias, time offset, with σ
-    counts: dict = field(default_factory=dict)
-    resolution: float = 0.05  # m, of the map
-    fit: np.ndarray | None = None  # (K,) share of the scan's returns ending within FIT_TOLERANCE_M of the edge
-
-    def good_track(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.t[self.good], self.poses[self.good]
-
-    @property
-    def std_xy(self) -> np.ndarray:
-        """(K,) m: the smoothed position's σ along its worst direction."""
-        return np.sqrt(np.clip(np.linalg.eigvalsh(self.covariance[:, :2, :2])[:, -1], 0, None))
-
-    @property
-    def ambiguous(self) -> np.ndarray:
-        """(K,) bool: accepted matches that leave x or y (along or across the track) free."""
-        return self.accepted & ~np.all(self.constrained[:, 3:5], axis=1)
-
-    def summary(self) -> dict:
-        """The yardstick's own figures: matched share, constrained share per axis, σ along/across."""
-        K = max(len(self.t), 1)
-
-        def q(x):
-            x = np.asarray(x, dtype=float)
-            x = x[np.isfinite(x)]
-            return {"median": float(np.median(x)), "p95": float(np.percentile(x, 95))} if x.size else \
-                {"median": None, "p95": None}
-        names = ("x", "y", "theta", "along", "cross")
-        return {"scans": int(len(self.t)), "matched_share": float(self.accepted.sum() / K),
-                "usable_share": float(self.usable.sum() / K),
-                "constrained_share": {n: float(self.constrained[:, i].sum() / K) for i, n in enumerate(names)},
-                "std_along_m": q(self.std_along), "std_cross_m": q(self.std_cross),
-                "scored_share": float(self.good.sum() / K),
-                "outside_free_space_share": float(self.counts.get("outside_free_space", 0) / K),
-                "poor_fit_share": float(self.counts.get("poor_fit", 0) / K),
-                "odometry_inconsistent_share": float(self.counts.get("odometry_inconsistent", 0) / K),
-                "better_fit_elsewhere_share": float(self.counts.get("better_fit_elsewhere", 0) / K),
-                "odometry": dict(self.odometry)}
 
 
 def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial_pose=None,
                     config: MatcherConfig | None = None, range_scale: float = 1.0, scan_stamp: str = "first_beam",
                     scan_stamp_offset: float = 0.0, noise: OdometryNoise | None = None, second_pass: bool = True,
-                    log=None, deskew: bool = True, wall_depth: float = 0.0) -> ReferenceTrack:
+                    log=None, deskew: bool = True, wall_depth: float = 0.0, cache: bool = True) -> ReferenceTrack:
     """The reference track of ``scans`` (``ScanData``) with ``odometry`` = (stamps (M,), reported
     twists (M, 3)) on the same clock, the laser at ``mount`` in base_link (package doc). The first
     scan is searched around ``initial_pose``, else globally. Scans with sweep timing are deskewed
     (``deskew``): in the first pass with the odometry's twist, in the second (``second_pass``: every
     scan matched again, gated on the prediction with the bag's own odometry noise) along the
     smoothed track's own motion. ``range_scale`` and ``wall_depth`` (m) turn a return z into map
-    metres as the filter does: s·z − o (``lidar_scale_to_map_scale``, ``map_wall_depth``)."""
+    metres as the filter does: s·z − o (``lidar_scale_to_map_scale``, ``map_wall_depth``).
+    ``cache``: reuse the track kept on disk for the same scans, odometry, map and arguments, else
+    keep this one there (``cache`` module)."""
+    arguments = dict(mount=mount, initial_pose=initial_pose, config=config, range_scale=range_scale,
+                     scan_stamp=scan_stamp, scan_stamp_offset=scan_stamp_offset, noise=noise,
+                     second_pass=second_pass, deskew=deskew, wall_depth=wall_depth)
+    key = C.reference_key({"inputs": C.inputs_fingerprint(scans, odometry)}, occupancy_map, arguments) \
+        if cache and len(scans) >= 2 else None
+    return C.cached(key, lambda: _build(scans, occupancy_map, odometry, log=log, **arguments), log)
+
+
+def _build(scans, occupancy_map: OccupancyMap, odometry, mount, initial_pose, config, range_scale, scan_stamp,
+           scan_stamp_offset, noise, second_pass, deskew, wall_depth, log=None) -> ReferenceTrack:
+    """``build_reference`` without the cache."""
     say = log or (lambda *_: None)
     t = np.array([scan_time(s, scan_stamp, scan_stamp_offset) for s in scans], dtype=float)
     odo_t = np.asarray(odometry[0], dtype=float)
@@ -143,17 +98,29 @@ def build_reference(scans, occupancy_map: OccupancyMap, mount, odometry, initial
 def reference_for_bag(bag_path, occupancy_map: OccupancyMap, scan_topic: str, mount, *, odom_topic: str = "/odom",
                       initial_pose=None, config: MatcherConfig | None = None, range_scale: float = 1.0,
                       scan_stamp: str = "first_beam", scan_stamp_offset: float = 0.0, odom_frame: str = "odom",
-                      base_frame: str = "base_link", log=None, wall_depth: float = 0.0) -> ReferenceTrack:
+                      base_frame: str = "base_link", log=None, wall_depth: float = 0.0,
+                      cache: bool = True) -> ReferenceTrack:
     """The reference track of a bag: its scans on ``scan_topic`` and its odometry (``odom_topic``,
-    else TF ``odom_frame → base_frame``); raises BagError (one line) when either is missing."""
+    else TF ``odom_frame → base_frame``); raises BagError (one line) when either is missing.
+    ``cache``: reuse the track kept on disk for the same bag content, topics, map and arguments
+    (without reading the bag), else keep this one there (``cache`` module)."""
+    arguments = dict(mount=mount, initial_pose=initial_pose, config=config, range_scale=range_scale,
+                     scan_stamp=scan_stamp, scan_stamp_offset=scan_stamp_offset, wall_depth=wall_depth)
+    reading = dict(scan_topic=scan_topic, odom_topic=odom_topic, odom_frame=odom_frame, base_frame=base_frame)
+    bag = C.bag_fingerprint(bag_path) if cache else None
+    key = None if bag is None else C.reference_key({"bag": bag, **reading}, occupancy_map, arguments)
+    return C.cached(key, lambda: _read_and_build(bag_path, occupancy_map, log=log, **reading, **arguments), log)
+
+
+def _read_and_build(bag_path, occupancy_map: OccupancyMap, scan_topic, odom_topic, odom_frame, base_frame,
+                    log=None, **arguments) -> ReferenceTrack:
     from localization.bags import BagError
     scans = read_scans(bag_path, scan_topic)
     odo = read_odometry(bag_path, odom_topic, odom_frame, base_frame)
     if len(scans) < 2 or len(odo[0]) < 2:
         raise BagError(f"bag {bag_path}: {len(scans)} scans on {scan_topic} and {len(odo[0])} odometry messages: "
                        "too few for a reference track")
-    return build_reference(scans, occupancy_map, mount, odo, initial_pose, config, range_scale, scan_stamp,
-                           scan_stamp_offset, log=log, wall_depth=wall_depth)
+    return build_reference(scans, occupancy_map, odometry=odo, log=log, cache=False, **arguments)
 
 
 def _prepend(mt: Matches, k: int, poses) -> Matches:
