@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from localization.core.parameters import Parameters
+from localization.core.paths import config_dir
 from localization.tools import demo as D
+from localization.tools.demo import heldout
+
+
+def _jobs(overrides=()):
+    """The RSS bags' replays as the job table has them (the fields the tuning reads)."""
+    return [D.Job(b, "real", "basement_fixed", "real_params.yaml", tuple(overrides)) for b in ("bag1", "bag2", "bag3")]
 
 
 def _fake_calibrator(table):
@@ -139,20 +147,20 @@ def test_choose_points_takes_the_lowest_training_mean_per_fold():
 
 def test_tuning_jobs_never_replay_a_fold_on_its_own_bag():
     folds = D.heldout_folds(["bag1", "bag2", "bag3"], _fake_calibrator(TABLE)[0])
-    base = D.Parameters.from_yaml(D.config_dir() / "real_params.yaml")
-    jobs = [{"label": b, "overrides": {"random_seed": 3}} for b in ("bag1", "bag2", "bag3")]
+    base = Parameters.from_yaml(config_dir() / "real_params.yaml")
+    jobs = _jobs({"random_seed": 3}.items())
     out = D.tuning_jobs(jobs, folds, base, {"random_seed": 3})
     points = D.tuning_points()
     assert len(out) == 3 * len(points) * 2
     for job in out:
-        k = job["fold"]
-        assert job["label"] != k and job["label"] in folds[k]["calibrated_on"]
-        ov = job["overrides"]
+        k = job.fold
+        assert job.label != k and job.label in folds[k]["calibrated_on"]
+        ov = job.overrides
         assert ov["odom_time_offset"] == folds[k]["odom_time_offset"]  # the fold's calibration
-        m, s = job["point"]
+        m, s = job.point
         assert ov["sigma_hit"] == s and ov["motion_a_trans"] == pytest.approx(base["motion_a_trans"] * m)
-        assert ov["random_seed"] == 3 and job["out"] is None
-    assert {(j["fold"], j["point"]) for j in out} == {(k, p) for k in folds for p in points}
+        assert ov["random_seed"] == 3 and job.out is None
+    assert {(j.fold, j.point) for j in out} == {(k, p) for k in folds for p in points}
 
 
 def test_heldout_tuning_replays_each_bag_with_its_folds_choice(monkeypatch, tmp_path):
@@ -168,22 +176,22 @@ def test_heldout_tuning_replays_each_bag_with_its_folds_choice(monkeypatch, tmp_
         out = []
         for job in jobs:
             point = next(p for p in D.tuning_points()
-                         if job["overrides"]["sigma_hit"] == p[1]
-                         and job["overrides"]["motion_a_trans"] == pytest.approx(0.4 * p[0]))
-            far = abs(np.log(point[0] / favourite[job["label"]][0])) + abs(point[1] - favourite[job["label"]][1])
-            out.append({"job": job, "metrics": _metrics(0.01 + 0.01 * far, 0.02 + 0.05 * far, 0.0)})
+                         if job.overrides["sigma_hit"] == p[1]
+                         and job.overrides["motion_a_trans"] == pytest.approx(0.4 * p[0]))
+            far = abs(np.log(point[0] / favourite[job.label][0])) + abs(point[1] - favourite[job.label][1])
+            out.append(D.Result(job, _metrics(0.01 + 0.01 * far, 0.02 + 0.05 * far, 0.0)))
         return out
 
-    monkeypatch.setattr(D, "_run_all", fake_run_all)
-    jobs = [{"label": b, "overrides": {}} for b in ("bag1", "bag2", "bag3")]
-    table, summary, results = D.heldout_tuning(jobs, folds, D.config_dir() / "real_params.yaml", {}, 1, tmp_path)
+    monkeypatch.setattr(heldout, "run_all", fake_run_all)
+    jobs = _jobs()
+    table, summary, results = D.heldout_tuning(jobs, folds, config_dir() / "real_params.yaml", {}, 1, tmp_path)
     assert len(calls) == 2 and len(results) == len(calls[0]) + 3
     assert (summary["bag3"]["motion_scale"], summary["bag3"]["sigma_hit"]) == (1.4, 0.1008)  # from bag1, bag2
     assert summary["bag3"]["tuned_on"] == ["bag1", "bag2"]
     # bag1 fold sees bag2 (1.4, 0.1008) and bag3 (0.5, 0.2016): never bag1 itself
-    assert all(j["label"] != j["fold"] for j in calls[0])
-    final = {j["label"]: j for j in calls[1]}
-    assert final["bag2"]["overrides"]["odom_time_offset"] == folds["bag2"]["odom_time_offset"]
-    assert final["bag3"]["overrides"]["sigma_hit"] == 0.1008
-    assert final["bag3"]["out"] == str(tmp_path / "heldout_tuned" / "bag3")
+    assert all(j.label != j.fold for j in calls[0])
+    final = {j.label: j for j in calls[1]}
+    assert final["bag2"].overrides["odom_time_offset"] == folds["bag2"]["odom_time_offset"]
+    assert final["bag3"].overrides["sigma_hit"] == 0.1008
+    assert final["bag3"].out == str(tmp_path / "heldout_tuned" / "bag3")
     assert "bag3" in table and "chosen motion x" in table

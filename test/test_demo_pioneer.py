@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from localization.core.parameters import Parameters
-from localization.tools.demo import END_WINDOW_S, pioneer_metrics, pioneer_table
+from localization.tools.demo import END_WINDOW_S, Job, Result, pioneer_metrics, pioneer_table
 
 
 def _result(agreement_t, agreement, refused=3):
@@ -23,5 +23,6 @@ def test_end_agreement_is_the_median_over_the_last_seconds_and_undone_updates_ar
     assert m["end_agreement_median"] == 0.95 and m["refused_jumps"] == 3 and m["recoveries"] == 1
     m = pioneer_metrics(_result(t, np.where(t < t[-1] - END_WINDOW_S, 0.95, 0.3)))
     assert m["end_agreement_median"] == 0.3  # ends where the scans do not fit
-    row = pioneer_table([{"job": {"label": "bag"}, "metrics": {"initial_pose_source": "global", "pioneer": m}}])
+    row = pioneer_table([Result(Job("bag", "pioneer", "lgfloor", "pioneer_params.yaml"),
+                                {"initial_pose_source": "global", "pioneer": m})])
     assert "0.300" in row and "undone" in row and "end agr" in row

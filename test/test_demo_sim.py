@@ -3,11 +3,18 @@ error against the world-frame truth, recoveries, false recoveries)."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, replace
+from dataclasses import replace
 
 from localization.eval.datasets import sim_bag
 from localization.sim.perturb import STANDARD_PERTURBATION
 from localization.tools import demo as D
+from localization.tools.demo import cli
+
+
+def _sim(label, trial, world):
+    """A simulated trial's replay as the job table has it (``world``: its perturbation, None: the map)."""
+    return D.Job(label, "sim", "stata_basement", "params.yaml", trial=trial,
+                 recording=() if world is None else (("world", world),))
 
 
 def _metrics(mean, world=None, recoveries=0, false=0):
@@ -35,13 +42,12 @@ def test_perturbed_runs_are_the_standard_world_and_2mps_drives():
 
 
 def test_sim_table_shows_clean_rows_then_perturbed_rows():
-    world = asdict(STANDARD_PERTURBATION)
+    world = STANDARD_PERTURBATION
     results = [
-        {"job": {"label": "trial2_noise0.3_perturbed", "trial": "trial2_noise0.3", "world": world},
-         "metrics": _metrics(0.0123, world=0.0456, recoveries=1, false=2)},
-        {"job": {"label": "trial2_noise0.3", "trial": "trial2_noise0.3", "world": None}, "metrics": _metrics(0.0078)},
-        {"job": {"label": "trial2_2mps_scale1.02", "trial": "trial2_noise0.3", "world": {**world, "scale": 1.02}},
-         "error": "no bag"},
+        D.Result(_sim("trial2_noise0.3_perturbed", "trial2_noise0.3", world),
+                 _metrics(0.0123, world=0.0456, recoveries=1, false=2)),
+        D.Result(_sim("trial2_noise0.3", "trial2_noise0.3", None), _metrics(0.0078)),
+        D.Result(_sim("trial2_2mps_scale1.02", "trial2_noise0.3", replace(world, scale=1.02)), error="no bag"),
     ]
     lines = D.sim_table(results).splitlines()
     assert "vs world" in lines[0] and "false" in lines[0] and "recov" in lines[0]
@@ -64,7 +70,7 @@ def test_perturbed_recordings_have_their_own_cache_entry():
 
 
 def test_demo_prints_both_row_sets(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(D, "REPORT_TRIALS", ("trial2_noise0.3",))
+    monkeypatch.setattr(cli, "REPORT_TRIALS", ("trial2_noise0.3",))
     out = tmp_path / "out"
     code = D.main(["--skip-real", "--skip-fast", "--skip-pioneer", "--duration", "2", "--particles", "200",
                    "--jobs", "1", "--out", str(out)])
