@@ -1,4 +1,8 @@
-"""Plots of a localization run (matplotlib, Agg backend: files only, no display needed)."""
+"""Plots of a localization run (matplotlib, Agg backend: files only, no display needed).
+
+Figures are drawn on their own Agg canvas (``new_figure``: no pyplot, no figure registry to close)
+with margins fixed in inches (``fixed_margins``) instead of ``tight_layout``, which draws every
+figure once more only to measure it."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,6 +17,32 @@ def _pyplot():
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
     return plt
+
+
+def new_figure(rows: int = 1, figsize=(10.0, 6.0), sharex: bool = False):
+    """A figure on its own Agg canvas and its ``rows`` axes (one column), as an array."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(rows, 1, sharex=sharex, squeeze=False)[:, 0]
+
+
+def fixed_margins(fig, left: float = 0.85, right: float = 0.2, bottom: float = 0.55, top: float = 0.4,
+                  between: float = 0.3) -> None:
+    """Subplot margins in inches (room for tick labels, axis labels and a title; ``between``: the
+    gap between stacked axes)."""
+    w, h = fig.get_size_inches()
+    rows = max(len(fig.axes), 1)
+    axes_h = max((h - top - bottom - between * (rows - 1)) / rows, 0.1)
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        hspace=between / axes_h)
+
+
+def save(fig, path) -> Path:
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    return path
 
 
 def map_image(occupancy_map: OccupancyMap, xlim, ylim, resolution: float | None = None) -> np.ndarray:
@@ -34,7 +64,6 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
                     title: str = "", margin: float = 3.0, reference_poses=None) -> Path:
     """Map, ground truth (if any), the reference track of scan matches (if any: ``reference_poses``,
     its good matches) and the estimated trajectory; the view fits them all plus ``margin``."""
-    plt = _pyplot()
     est = np.asarray(est_poses, dtype=float).reshape(-1, 3)
     truth = None if truth_poses is None or not len(truth_poses) else np.asarray(truth_poses, dtype=float).reshape(-1, 3)
     ref = None if reference_poses is None or not len(reference_poses) else \
@@ -50,7 +79,7 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
     img = map_image(occupancy_map, (lo[0], hi[0]), (lo[1], hi[1]), res)
     aspect = span[1] / max(span[0], 1e-6)
     w = 10.0
-    fig, ax = plt.subplots(figsize=(w, float(np.clip(w * aspect, 4.0, 14.0))))
+    fig, (ax,) = new_figure(1, (w, float(np.clip(w * aspect, 4.0, 14.0))))
     ax.imshow(img, origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray", vmin=0, vmax=1,
               interpolation="nearest")
     if truth is not None:
@@ -71,11 +100,8 @@ def plot_trajectory(path, occupancy_map: OccupancyMap, est_poses, truth_poses=No
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fixed_margins(fig)
+    return save(fig, path)
 
 
 def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, agreement_t=None, agreement=None,
@@ -89,15 +115,13 @@ def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, a
       along > 0 ahead of the car, cross > 0 left of its path);
     - heading error |θ̂ − θ| (``heading_error``, radians, drawn in degrees) on its own axis;
     - scan–map agreement; the particle count when it changes (adaptive_particles, global spreads)."""
-    plt = _pyplot()
     has_truth = ct_t is not None and len(ct_t) > 0
     has_track = has_truth and track is not None and len(track.t) > 0
     has_heading = has_truth and heading_error is not None and len(heading_error) > 0
     has_agree = agreement_t is not None and len(agreement_t) > 0
     has_count = particles is not None and len(particles) > 0 and np.ptp(particles) > 0
     rows = int(has_truth) + int(has_track) + int(has_heading) + int(has_agree) + int(has_count) or 1
-    fig, axes = plt.subplots(rows, 1, figsize=(10, 2.6 * rows + 0.6), sharex=True, squeeze=False)
-    axes = axes[:, 0]
+    fig, axes = new_figure(rows, (10, 2.6 * rows + 0.6), sharex=True)
     panels = iter(axes)
     if has_truth:
         ax = next(panels)
@@ -140,8 +164,5 @@ def plot_errors(path, t0: float, ct_t=None, ct_error=None, heading_error=None, a
     axes[-1].set_xlabel("time since start (s)")
     for ax in axes:
         ax.grid(True, alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fixed_margins(fig)
+    return save(fig, path)

@@ -34,7 +34,7 @@ WHOLE_FILE_BYTES = 64 << 20  # files up to this size are hashed whole ...
 SAMPLE_BYTES, SAMPLES = 1 << 20, 16  # ... larger ones by their size, first and last MiB and 16 MiB between
 ARRAYS = ("t", "poses", "laser_poses", "matched", "information", "covariance", "std_along", "std_cross", "score",
           "usable", "accepted", "constrained", "good", "fit")
-ROOT_MODULE = "localization.eval.reference"
+ROOT_MODULE = "localization.eval.reference.track"  # the computation (not its errors, plots or command line)
 
 
 def reference_dir() -> Path:
@@ -128,7 +128,7 @@ def _imported(source: bytes, name: str, is_package: bool) -> list[str]:
 
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
-    """Digest of the source of every ``localization`` module the yardstick imports (transitively)."""
+    """Digest of the source of every ``localization`` module the track's computation imports (transitively)."""
     package_dir = Path(__file__).resolve().parents[2]
     h = hashlib.blake2b(digest_size=20)
     seen: set[str] = set()

@@ -14,11 +14,10 @@ if TYPE_CHECKING:
 def plot_reference(path, ref: ReferenceTrack, est_t, est_poses, t0: float = 0.0, title: str = ""):
     """Along- and cross-track error vs time (scored scans), scans whose match leaves an axis free
     marked; the reference's own σ along and across the track."""
-    from localization.eval.plots import _pyplot
-    plt = _pyplot()
+    from localization.eval.plots import fixed_margins, new_figure, save
     rt, rp = ref.good_track()
     err = track_errors(est_t, est_poses, rt, rp)
-    fig, axes = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    fig, axes = new_figure(2, (10, 6), sharex=True)
     ax = axes[0]
     ax.plot(err.t - t0, err.along, color="tab:red", lw=1.0, label="along-track (> 0 ahead)")
     ax.plot(err.t - t0, err.cross, color="tab:blue", lw=1.0, label="cross-track (> 0 left)")
@@ -39,7 +38,5 @@ def plot_reference(path, ref: ReferenceTrack, est_t, est_poses, t0: float = 0.0,
     axes[-1].set_xlabel("time since start (s)")
     for a in axes:
         a.grid(True, alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fixed_margins(fig)
+    return save(fig, path)
