@@ -33,6 +33,9 @@ setup(
     ],
     extras_require={
         "tune": ["optuna>=4,<6"],  # localization-tune
+        # localization-tune on several machines sharing one PostgreSQL database (postgresql://...): the
+        # driver psycopg (psycopg[binary], pinned: the tested build), which SQLAlchemy 2.1 uses for postgresql://
+        "distributed": ["optuna>=4,<6", "SQLAlchemy>=2.1,<3", "psycopg==3.3.9", "psycopg-binary==3.3.9"],
         "live": ["foxglove-sdk>=0.30,<1"],  # localization-replay --foxglove, the node's live view
         "dev": ["pytest>=8", "hypothesis>=6", "ruff>=0.5", "websockets>=13"],
     },

@@ -58,7 +58,9 @@ fi
 export PATH="$PWD/$VENV/bin:$PATH"
 case "$action" in
   run)   exec localization-demo --overwrite "$@" ;;  # re-running replaces demo-results/
-  test)  exec "$PY" -m pytest -q "$@" ;;
+  test)  # the tuner's PostgreSQL test starts a throwaway server: initdb and pg_ctl of the Debian package
+         if ! compgen -G "/usr/lib/postgresql/*/bin/initdb" >/dev/null; then apt_install postgresql; fi
+         exec "$PY" -m pytest -q "$@" ;;
   setup) echo "bootstrap: $VENV is ready (ROS_DOMAIN_ID=$ROS_DOMAIN_ID)" ;;
   *)     echo "usage: scripts/bootstrap.sh {run|test|setup} [args...]" >&2; exit 2 ;;
 esac

@@ -24,6 +24,7 @@ ROS = {"rclpy", "ament_index_python", "builtin_interfaces", "rcl_interfaces", "s
 TUNING = "localization/eval/tuning/"
 EXTRA_USERS = {"optuna": (f"{TUNING}objective.py", f"{TUNING}storage.py", f"{TUNING}study.py", f"{TUNING}workers.py",
                           "localization/tools/tune.py"),
+               "sqlalchemy": (f"{TUNING}storage.py",),
                "foxglove-sdk": ("localization/ros/live_view.py",)}
 BRINGUP = {"nav2_map_server", "nav2_lifecycle_manager", "rviz2", "rviz_default_plugins"}
 #: keys rosdep has no Ubuntu 24.04 (noble) rule for: pip installs these

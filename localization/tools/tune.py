@@ -15,9 +15,9 @@ agreement without it, plus penalties for a lost track and for time over real tim
 new study evaluates the starting parameters (the baseline).
 
 The study lives in ``--storage``: by default the journal file ``DIR/study.journal``; an Optuna URL
-(``sqlite:///tune.db``, ``postgresql://user:pw@host/db``) lets the same command on several machines
-share one study. Running again with the same ``--study`` and storage continues the study: ``--trials``
-more trials. ``--jobs J`` runs J worker processes here.
+(``sqlite:///tune.db``, ``postgresql://user:pw@host/db`` with the ``[distributed]`` extra) lets the same
+command on several machines share one study. Running again with the same ``--study`` and storage
+continues the study: ``--trials`` more trials. ``--jobs J`` runs J worker processes here.
 
 ``--compare OTHER.yaml`` runs no study: it scores the starting parameters and OTHER (e.g. a
 ``best_params.yaml``) on the bags with filter seeds the tuning did not use (default 11, 12, 13).
@@ -75,8 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--trials", type=_at_least_one, default=40,
                     help="trials to run now, at least 1 (added to the study's; default 40)")
     ap.add_argument("--jobs", type=_at_least_one, default=1, help="worker processes on this machine (default 1)")
-    ap.add_argument("--storage", help="Optuna storage URL (sqlite:///f.db, postgresql://...) or a journal file path "
-                    "(default: DIR/study.journal)")
+    ap.add_argument("--storage", help="Optuna storage URL (sqlite:///f.db, postgresql://user:pw@host/db: pip install "
+                    "'localization[distributed]') or a journal file path (default: DIR/study.journal)")
     ap.add_argument("--study", default=DEFAULT_STUDY, help=f"study name (default {DEFAULT_STUDY})")
     ap.add_argument("--timeout", type=args_.positive_float, help="stop starting new trials after S seconds")
     ap.add_argument("--out", type=Path, default=Path("tune-results"), help="output folder (default ./tune-results)")

@@ -5,11 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from localization.eval.tuning.score import ScoreWeights
-from localization.eval.tuning.storage import make_storage
+from localization.eval.tuning.storage import make_storage, study_lock
 
 DEFAULT_STUDY = "localization-tune"
 BASELINE_ATTR = "baseline"  # user attribute of the enqueued trial that evaluates the starting parameters
 DUPLICATE_ATTR = "repeat_of"  # user attribute of a trial whose parameters an earlier trial evaluated: its number
+WORKERS_ATTR = "workers_started"  # study attribute (PostgreSQL): worker numbers handed out so far
 
 
 @dataclass
@@ -33,17 +34,37 @@ class TuneConfig:
 
 
 def make_study(cfg: TuneConfig, worker: int = 0):
+    """Create or load the study (its sampler seeded from ``cfg.seed``, ``worker`` and the trials it has).
+    Against PostgreSQL (several machines, each with its own worker numbers) the worker number is
+    claimed from the study instead, under ``study_lock``: no two processes draw alike."""
     import optuna
 
     storage = make_storage(cfg.storage)
-    # a resumed study seeds its sampler past the trials it has: the same seed again would draw the
-    # same first (random) parameter sets again
-    done = _finished_trials(storage, cfg.study)
-    sampler = optuna.samplers.TPESampler(seed=cfg.seed + 1000 * worker + 100_003 * done, constant_liar=True)
     pruner = (optuna.pruners.PercentilePruner(75.0, n_startup_trials=5, n_warmup_steps=0) if cfg.prune
               else optuna.pruners.NopPruner())
-    return optuna.create_study(storage=storage, study_name=cfg.study, direction="minimize",
-                               sampler=sampler, pruner=pruner, load_if_exists=True)
+    with study_lock(cfg.storage) as shared:
+        # a resumed study seeds its sampler past the trials it has: the same seed again would draw the
+        # same first (random) parameter sets again
+        done = _finished_trials(storage, cfg.study)
+        if shared:
+            worker = _claim_worker_number(storage, cfg.study)
+        sampler = optuna.samplers.TPESampler(seed=cfg.seed + 1000 * worker + 100_003 * done, constant_liar=True)
+        return optuna.create_study(storage=storage, study_name=cfg.study, direction="minimize",
+                                   sampler=sampler, pruner=pruner, load_if_exists=True)
+
+
+def _claim_worker_number(storage, study_name: str) -> int:
+    """The next worker number of the study (0, 1, …: one per process that opened it, on any machine),
+    recorded in the study; creates the study if it does not exist yet. Call it under ``study_lock``."""
+    import optuna
+
+    try:
+        study_id = storage.get_study_id_from_name(study_name)
+    except KeyError:
+        study_id = storage.create_new_study([optuna.study.StudyDirection.MINIMIZE], study_name)
+    number = int(storage.get_study_user_attrs(study_id).get(WORKERS_ATTR, 0))
+    storage.set_study_user_attr(study_id, WORKERS_ATTR, number + 1)
+    return number
 
 
 def _finished_trials(storage, study_name: str) -> int:
@@ -79,13 +100,15 @@ def start_values(cfg: TuneConfig) -> dict:
 
 
 def enqueue_baseline(study, cfg: TuneConfig) -> None:
-    """Evaluate the starting parameters first (once per study: again only if it failed)."""
+    """Evaluate the starting parameters first (once per study: again only if it failed; under
+    ``study_lock``, so tuners starting at once against PostgreSQL queue it once)."""
     import optuna
 
     live = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.RUNNING, optuna.trial.TrialState.WAITING)
-    if any(t.user_attrs.get(BASELINE_ATTR) for t in study.get_trials(deepcopy=False, states=live)):
-        return
-    study.enqueue_trial(start_values(cfg), user_attrs={BASELINE_ATTR: True}, skip_if_exists=True)
+    with study_lock(cfg.storage):
+        if any(t.user_attrs.get(BASELINE_ATTR) for t in study.get_trials(deepcopy=False, states=live)):
+            return
+        study.enqueue_trial(start_values(cfg), user_attrs={BASELINE_ATTR: True}, skip_if_exists=True)
 
 
 def baseline_trial(study):
