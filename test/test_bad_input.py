@@ -160,7 +160,7 @@ def test_before_any_map(caplog):
     loc = Localizer(Parameters(num_particles=50))
     with caplog.at_level(logging.INFO):
         assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
-        assert loc.on_scan(ScanData(0.0, *good_scan())) is None
+        assert loc.on_scan(ScanData(0.0, *good_scan())).estimate is None
     assert "no map" in caplog.text
 
 
@@ -171,7 +171,7 @@ def test_fuzz_callbacks_never_crash_or_emit_nan(loc, stamp, vx, vy, wz, ranges, 
     out = loc.on_odometry(TwistData(stamp, vx, vy, wz))
     if out is not None:
         assert np.all(np.isfinite(out.pose))
-    out = loc.on_scan(ScanData(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax))
+    out = loc.on_scan(ScanData(stamp, np.array(ranges, dtype=float), amin, amax, inc, rmin, rmax)).estimate
     if out is not None:
         assert np.all(np.isfinite(out.pose)) and np.all(np.isfinite(out.covariance))
     assert np.all(np.isfinite(loc.particles()))
@@ -185,7 +185,7 @@ def test_degenerate_filter_recovers_by_spreading_globally(caplog):
     loc._pf.particles[:, :2] = [-50.0, -50.0]  # the car was carried off: every particle impossible
     with caplog.at_level(logging.WARNING):
         for k in range(3):
-            assert loc.on_scan(ScanData(float(k), *good_scan())) is None
+            assert loc.on_scan(ScanData(float(k), *good_scan())).estimate is None
     assert "re-spreading" in caplog.text
     assert m.is_free(loc.particles()[:, :2]).mean() > 0.95
     assert_sane(loc)
@@ -195,14 +195,14 @@ def test_scan_stamped_long_before_the_odometry_is_ignored(loc, caplog):
     loc.on_odometry(TwistData(10.0, 0.0, 0.0, 0.0))
     loc.on_odometry(TwistData(10.02, 1.0, 0.0, 0.0))
     with caplog.at_level(logging.WARNING):
-        assert loc.on_scan(ScanData(5.0, *good_scan())) is None  # 5 s in the past: stale or a clock jump
+        assert loc.on_scan(ScanData(5.0, *good_scan())).estimate is None  # 5 s in the past: stale or a clock jump
     assert "before the latest odometry" in caplog.text
     assert loc.estimate.stamp == 10.02
-    assert loc.on_scan(ScanData(10.01, *good_scan())) is not None
+    assert loc.on_scan(ScanData(10.01, *good_scan())).estimate is not None
     # a bag loop: odometry jumps back (reference reset), then scans of the new loop are used again
     assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
     loc.on_odometry(TwistData(0.02, 1.0, 0.0, 0.0))
-    assert loc.on_scan(ScanData(0.01, *good_scan())) is not None
+    assert loc.on_scan(ScanData(0.01, *good_scan())).estimate is not None
 
 
 def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):
@@ -218,14 +218,10 @@ def test_one_odometry_message_with_a_bad_stamp_loses_no_motion(loc):
 def test_the_localizer_says_why_it_could_not_use_a_scan():
     loc = Localizer(Parameters(num_particles=100, ray_caster="exact"))
     scan = ScanData(1.0, np.full(100, 2.0), -1.0, 1.0, 0.02, 0.1, 10.0)
-    loc.on_scan(scan)
-    assert loc.scan_ignored == "not ready"  # no map
+    assert loc.on_scan(scan).ignored == "not ready"  # no map
     loc.begin_map_preparation()  # a map prepared off-thread, none installed yet
-    loc.on_scan(scan)
-    assert loc.scan_ignored == "map pending"
+    assert loc.on_scan(scan).ignored == "map pending"
     loc.set_map(corridor_map())
-    loc.on_scan(scan)
-    assert loc.scan_ignored == "not ready"  # a map, no initial pose
+    assert loc.on_scan(scan).ignored == "not ready"  # a map, no initial pose
     loc.set_initial_pose(np.array([2.0, 0.0, 0.0]), stamp=0.5)
-    loc.on_scan(scan)
-    assert loc.scan_ignored is None  # taken (it waits for odometry)
+    assert loc.on_scan(scan).ignored is None  # taken (it waits for odometry)

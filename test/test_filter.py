@@ -89,7 +89,7 @@ def drive(loc, m, truth, seconds, speed=2.0, rng=None, odom_noise=0.0):
         if t >= next_scan:
             next_scan += 0.025
             r = caster.cast(compose(truth, [0.275, 0, 0])[None], angles)[0] + rng.normal(0, 0.01, angles.size)
-            est = loc.on_scan(ScanData(t, r, -2.356, 2.356, angles[1] - angles[0], 0.02, 10.0))
+            est = loc.on_scan(ScanData(t, r, -2.356, 2.356, angles[1] - angles[0], 0.02, 10.0)).estimate
             if est is not None:
                 errors.append(np.hypot(*(est.pose[:2] - truth[:2])))
     return truth, np.array(errors)
@@ -108,9 +108,9 @@ def test_localizer_converges_on_a_corridor_drive(stata):
 def test_localizer_waits_for_map_and_pose_and_is_seeded(stata):
     loc = Localizer(Parameters(num_particles=200, random_seed=5))
     assert loc.on_odometry(TwistData(0.0, 1.0, 0.0, 0.0)) is None
-    assert loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)) is None
+    assert loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)).estimate is None
     loc.set_map(stata)
-    assert not loc.ready and loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)) is None
+    assert not loc.ready and loc.on_scan(ScanData(0.0, np.ones(10), -1, 1, 0.2, 0.0, 10.0)).estimate is None
     runs = []
     for _ in range(2):
         loc = Localizer(Parameters(num_particles=200, random_seed=5))

@@ -86,7 +86,7 @@ def test_first_scan_seeds_only_with_global_init_scan(method, monkeypatch):
     angles = np.linspace(-2.356, 2.356, 1081)
     ranges = ExactRayCaster(m, 10.0).cast(true[None], angles)[0]
     from localization.core.scan import ScanData
-    est = loc.on_scan(ScanData(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0))
+    est = loc.on_scan(ScanData(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)).estimate
     assert est is not None
     err = np.hypot(*(est.pose[:2] - true[:2]))
     assert len(calls) == (1 if method == "scan" else 0)

@@ -7,7 +7,7 @@ import pytest
 from helpers import corridor_map, wrap_sensor_updates
 
 from localization.benchmarks import robustness as RB
-from localization.core.filter.mcl import Estimate, MonteCarloLocalizer
+from localization.core.filter.mcl import Estimate, MonteCarloLocalizer, SensorUpdateResult, Snapshot
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.localizer import Localizer
 from localization.core.motion import MotionModel
@@ -15,9 +15,8 @@ from localization.core.occupancy_map import load_map
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.raycast.exact import ExactRayCaster
-from localization.core.recovery import SwitchGlide, is_jump
+from localization.core.recovery import Action, Decision, SwitchGlide, is_jump
 from localization.core.scan import ScanData
-from localization.core.scan_step import StepOutcome
 from localization.core.sensors.beam import BeamModel as SensorModel
 from localization.core.timeline import PoseEstimate
 from localization.eval.datasets import trial_config
@@ -169,7 +168,7 @@ def test_stationary_car_does_not_drift_and_tightens_once():
     loc.set_initial_pose(true + [0.1, 0.05, 0.05], np.diag([0.09, 0.09, 0.01]))
     spread0 = cloud_spread(loc.estimate.covariance)
     loc.on_odometry(TwistData(0.0, 0.0, 0.0, 0.0))
-    first = loc.on_scan(ScanData(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0))
+    first = loc.on_scan(ScanData(0.0, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)).estimate
     assert first is not None  # a sensor update runs right after /initialpose, standing still
     spread1 = cloud_spread(first.covariance)
     assert spread1 < spread0
@@ -178,7 +177,7 @@ def test_stationary_car_does_not_drift_and_tightens_once():
     for k in range(1, 400):  # 8 s standing: zero twist at 50 Hz, scans in between
         loc.on_odometry(TwistData(0.02 * k, 0.0, 0.0, 0.0))
         scan = ScanData(0.02 * k + 0.01, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 10.0)
-        assert loc.on_scan(scan) is None
+        assert loc.on_scan(scan).estimate is None
     assert np.array_equal(loc.particles(), particles1)  # no motion noise, no resampling jitter
     est = loc.estimate
     assert np.allclose(est.pose, mean1) and cloud_spread(est.covariance) <= spread1 + 1e-12
@@ -249,31 +248,34 @@ START = np.array([-2.0, 0.0, 0.0])  # where the switch tests' Localizer is told 
 
 
 def _switch_published(stata, offset, switch_on: int, standing: bool, scans: int, **overrides):
-    """A Localizer at START whose scan step reports a challenger winning at START + ``offset`` on scan
-    ``switch_on`` (1-based; the cloud moved there); its other scans update at the cloud's estimate, or
-    (``standing``) update nothing. The estimates the scans returned, the challenger's pose, the Localizer."""
-    # the scan step below returns no beams: the range scale (learnt from them) stays as configured
+    """A Localizer at START whose recovery decides a challenger won at START + ``offset`` on scan
+    ``switch_on`` (1-based; the cloud moves there); its other scans update at the cloud's estimate (updates
+    that leave the cloud as it is), or (``standing``) update nothing. The estimates the scans returned, the
+    challenger's pose, the Localizer."""
+    # the range scale is not learnt: it stays as configured
     loc = Localizer(params(num_particles=300, range_scale_estimation=False, **overrides),
                     logging.getLogger("test.glide"))
     loc.set_map(stata)
     loc.set_initial_pose(START, np.diag([1e-4, 1e-4, 1e-5]))
     there = START + offset
     challenger = Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5]))
-    real_run, runs = loc._step.run, []
+    won = Snapshot(np.tile(there, (300, 1)), np.full(300, -np.log(300.0)))  # the challenger's particles
+    wrap_sensor_updates(loc._pf, lambda real: lambda *a, **k: SensorUpdateResult(True, False, 300.0, 0.0))
+    runs = []
 
-    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):
-        real_run(scan, t_s, occupancy_map, global_mode)  # (the particles moved to the scan's time)
-        runs.append(t_s)
+    def decide(update):
+        runs.append(update.time)
         if len(runs) == switch_on:
-            loc._pf.set_particles(np.tile(there, (300, 1)))  # the challenger's particles, in place
-            return StepOutcome(estimate=challenger, switched=challenger)
-        return StepOutcome() if standing else StepOutcome(estimate=loc._pf.estimate())
+            return Decision(Action.SWITCH, challenger, glide=True, cloud=won)
+        return Decision(Action.SKIP) if standing else Decision(Action.TRACK, update.estimate)
 
-    loc._step.run = run
+    loc._pipeline.recovery.decide = decide
     poses = []
     for k in range(scans):
         loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
-        est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0))
+        if not standing:
+            loc.request_update()  # every scan reaches the decision
+        est = loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0)).estimate
         if est is not None:
             poses.append(est.pose)
     return np.array(poses), there, loc
@@ -324,31 +326,30 @@ def _tracking_jump(stata, start_cov, jump_glide=None):
     """A tracking Localizer whose cloud moves 0.6 m on its second scan without a switch (a cloud of two
     places whose weight moved): the published estimates of 8 scans and the cloud's place."""
     overrides = {} if jump_glide is None else {"recovery_jump_glide": jump_glide}
-    # the scan step below returns no beams: the range scale (learnt from them) stays as configured
+    # the range scale is not learnt: it stays as configured
     loc = Localizer(params(num_particles=300, range_scale_estimation=False, **overrides),
                     logging.getLogger("test.jump"))
     loc.set_map(stata)
     start = np.array([-2.0, 0.0, 0.0])
     loc.set_initial_pose(start, start_cov)
     there = start + [0.5, 0.35, 0.05]
-    real_run, runs = loc._step.run, []
+    real_decide, runs = loc._pipeline.recovery.decide, []
 
-    def run(scan, t_s, occupancy_map, global_mode, check_jump=False):  # on its second scan the cloud is elsewhere
-        out = real_run(scan, t_s, occupancy_map, global_mode)
-        runs.append(t_s)
+    def decide(update):  # on its second scan the cloud is elsewhere
+        runs.append(update.time)
         if len(runs) == 2:
             loc._pf.set_particles(np.tile(there, (300, 1)))
-        if len(runs) >= 2:  # the move kept (this fake scan has no beams to score it), judged as the step does
-            published = loc._timeline.pose_at(t_s) if check_jump else None
-            return StepOutcome(estimate=Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5])),
-                               published=published, jumped=is_jump(published, there, loc.params.recovery_jump_glide))
-        return out
+        if len(runs) >= 2:  # the move kept (this fake scan cannot score it), judged as the recovery does
+            return Decision(Action.TRACK, Estimate(pose=there, covariance=np.diag([1e-4, 1e-4, 1e-5])),
+                            glide=is_jump(update.published, there, loc.params.recovery_jump_glide))
+        return real_decide(update)
 
-    loc._step.run = run
+    loc._pipeline.recovery.decide = decide
     poses = []
     for k in range(8):
         loc.on_odometry(TwistData(0.1 * k, 0.0, 0.0, 0.0))
-        poses.append(loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0)).pose)
+        loc.request_update()  # every scan reaches the decision
+        poses.append(loc.on_scan(ScanData(0.1 * k, np.ones(10), -1.0, 1.0, 0.2, 0.01, 10.0)).estimate.pose)
     return np.array(poses), there, loc
 
 
@@ -390,7 +391,8 @@ def _update_moves_the_cloud(stata, truth, believed, moved, caplog):
             robot = truth + [0.05 * k * math.cos(truth[2]), 0.05 * k * math.sin(truth[2]), 0.0]
             laser = robot + [mount[0] * math.cos(robot[2]), mount[0] * math.sin(robot[2]), 0.0]
             loc.on_odometry(TwistData(t, 0.5, 0.0, 0.0))
-            est = loc.on_scan(ScanData(t, caster.cast(laser[None], ANGLES)[0], ANGLES[0], ANGLES[-1], INC, 0.02, 10.0))
+            scan = ScanData(t, caster.cast(laser[None], ANGLES)[0], ANGLES[0], ANGLES[-1], INC, 0.02, 10.0)
+            est = loc.on_scan(scan).estimate
             poses.append(est.pose if est is not None else poses[-1])
     return np.array(poses), loc
 
@@ -401,7 +403,7 @@ def test_an_update_that_jumps_to_a_place_the_scan_fits_worse_is_undone(stata, ca
     truth = np.array([-6.6, 20.5, -2.24])
     wrong = truth + [0.6 * math.sin(truth[2]), -0.6 * math.cos(truth[2]), 0.0]  # 0.6 m to the side
     poses, loc = _update_moves_the_cloud(stata, truth, truth, wrong, caplog)
-    assert loc._step.refused_jumps == 1 and "fits no clearly better" in caplog.text
+    assert loc.refused_jumps == 1 and "fits no clearly better" in caplog.text
     steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
     assert steps.max() < 0.1  # 0.05 m per scan driven: no jump
     end = truth[:2] + 0.45 * np.array([math.cos(truth[2]), math.sin(truth[2])])
@@ -415,7 +417,7 @@ def test_an_update_that_jumps_to_a_place_the_scan_fits_clearly_better_is_taken(s
     truth = np.array([-6.6, 20.5, -2.24])
     wrong = truth + [0.6 * math.sin(truth[2]), -0.6 * math.cos(truth[2]), 0.0]
     poses, loc = _update_moves_the_cloud(stata, truth, wrong, truth, caplog)
-    assert loc._step.refused_jumps == 0 and "fits no clearly better" not in caplog.text
+    assert loc.refused_jumps == 0 and "fits no clearly better" not in caplog.text
     steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
     assert 0.2 < steps.max() <= loc.params.recovery_jump_glide + 0.05 + 1e-9  # glided (plus 0.05 m driven)
     end = truth[:2] + 0.45 * np.array([math.cos(truth[2]), math.sin(truth[2])])

@@ -94,7 +94,7 @@ def test_the_filter_shrinks_when_tight_and_grows_when_spread():
     assert pf.num_particles > 3000 and pf.particles.shape == (pf.num_particles, 3)
     # global localization and recovery start at max_particles
     loc.initialize_global()
-    assert pf.num_particles == 8000 and loc._seeder.count == 8000
+    assert pf.num_particles == 8000 and loc._pipeline.seeder.count == 8000
     # ... and keep it until the spread converges (KLD on a peaked first scan would drop it to the minimum)
     assert pf.kld_hold
     pf.resample(np.r_[1.0, np.zeros(pf.num_particles - 1)])

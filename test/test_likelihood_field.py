@@ -220,7 +220,7 @@ def test_a_localizer_tracks_with_the_likelihood_field():
     est = None
     for i in range(15):
         ranges = caster.cast(compose(truth[None], np.array([0.275, 0.0, 0.0])), angles)[0]
-        est = loc.on_scan(ScanData(0.1 * i, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 8.0))
+        est = loc.on_scan(ScanData(0.1 * i, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 8.0)).estimate
         loc.request_update() if hasattr(loc, "request_update") else setattr(loc, "_force_update", True)
     assert est is not None and np.all(np.isfinite(est.pose)) and np.all(np.isfinite(est.covariance))
     assert abs(est.pose[1] - truth[1]) < 0.1 and abs(est.pose[2]) < 0.1  # across the corridor and heading

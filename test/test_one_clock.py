@@ -69,8 +69,8 @@ def test_odometry_later_than_the_wait_is_used_extrapolated_and_said(caplog):
     for k in range(5):
         loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))
     with caplog.at_level(logging.WARNING):
-        assert loc.on_scan(_scan(1.10)) is None  # newer than the odometry: waits
-        assert loc.on_scan(_scan(1.25)) is not None  # the first waited 0.15 s > 0.1 s: used, extrapolated
+        assert loc.on_scan(_scan(1.10)).estimate is None  # newer than the odometry: waits
+        assert loc.on_scan(_scan(1.25)).estimate is not None  # the first waited 0.15 s > 0.1 s: used, extrapolated
     assert "extrapolated" in caplog.text and loc.waiting_scans == 1
 
 

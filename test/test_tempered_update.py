@@ -165,12 +165,12 @@ def test_localizer_tempers_only_the_first_update_after_an_initial_pose(maps_dir)
         loc.set_map(m)
         loc.on_odometry(TwistData(0.0, 0.0, 0.0, 0.0))
         loc.set_initial_pose(truth + [0.2, -0.2, 0.1], stamp=0.0)
-        assert loc._step.temper_next
-        est = loc.on_scan(stationary_scan(m, truth, 0.0))
-        assert est is not None and not loc._step.temper_next  # used once
+        assert loc._pipeline.temper_next
+        est = loc.on_scan(stationary_scan(m, truth, 0.0)).estimate
+        assert est is not None and not loc._pipeline.temper_next  # used once
         first[stages].append(est.pose[:2] - truth[:2])
         loc.initialize_global(0.0)
-        assert not loc._step.temper_next  # a global spread has its own seeding, no stages
+        assert not loc._pipeline.temper_next  # a global spread has its own seeding, no stages
     plain, tempered = np.array(first[1]), np.array(first[8])
     assert np.all(np.hypot(*tempered.T) < 0.05), tempered
     assert np.all(tempered.std(axis=0) < 0.01), tempered

@@ -18,9 +18,9 @@ from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import OdometryBuffer, TwistData
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
+from localization.core.pipeline import deskew_offsets
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
-from localization.core.scan_step import deskew_offsets
 from localization.core.sensors.beam import BeamModel
 from localization.eval.datasets import trial_config
 from localization.eval.reference import track_errors
@@ -91,7 +91,7 @@ def test_estimate_is_stamped_with_the_time_it_describes():
     for k in range(6):
         loc.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.0))
     # a swept scan describes the middle of its sweep, newer than the odometry: it waits for it
-    assert loc.on_scan(_scan(1.10, time_increment=1e-4)) is None and loc.waiting_scans == 1
+    assert loc.on_scan(_scan(1.10, time_increment=1e-4)).estimate is None and loc.waiting_scans == 1
     out = loc.on_odometry(TwistData(1.12, 2.0, 0.0, 0.0))  # odometry reaches the scan's time: it is used
     (est,) = loc.take_corrections()
     assert est.stamp == pytest.approx(1.10 + 0.5 * 100 * 1e-4) and loc.waiting_scans == 0
@@ -102,13 +102,13 @@ def test_estimate_is_stamped_with_the_time_it_describes():
     assert loc.estimate_at(est.stamp).pose == pytest.approx(est.pose, abs=1e-12)
     # a scan older than the particles' time (but covered by odometry): the particles go back exactly
     loc.request_update()  # (it has not moved since the last update)
-    est2 = loc.on_scan(_scan(1.10))
+    est2 = loc.on_scan(_scan(1.10)).estimate
     assert est2.stamp == pytest.approx(1.10)
     # without alignment: the scan is used at the newest odometry, without waiting
     off = _corridor_localizer(align_odometry=False)
     for k in range(6):
         off.on_odometry(TwistData(1.0 + 0.02 * k, 2.0, 0.0, 0.0))
-    assert off.on_scan(_scan(1.10, time_increment=1e-4)).stamp == pytest.approx(1.10)
+    assert off.on_scan(_scan(1.10, time_increment=1e-4)).estimate.stamp == pytest.approx(1.10)
 
 
 def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
@@ -124,7 +124,7 @@ def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
 
     loc._pf.tempered_update = slow_update
     result = []
-    worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0))))
+    worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0)).estimate))
     worker.start()
     assert started.wait(5.0)
     waits = []
@@ -260,11 +260,11 @@ def test_swept_scan_gets_offsets_only_with_sweep_timing():
 def test_a_car_that_stops_gets_one_more_update_where_it_stands():
     loc = _corridor_localizer(update_min_distance=0.5, update_min_angle=0.5)
     loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
-    assert loc.on_scan(_scan(1.0)) is not None  # the first scan after the initial pose
+    assert loc.on_scan(_scan(1.0)).estimate is not None  # the first scan after the initial pose
     for k in range(1, 6):
         loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))  # 0.1 m: below update_min_distance
-    assert loc.on_scan(_scan(1.1)) is None
+    assert loc.on_scan(_scan(1.1)).estimate is None
     for k in range(6, 11):
         loc.on_odometry(TwistData(1.0 + 0.02 * k, 0.0, 0.0, 0.0))  # stopped
-    assert loc.on_scan(_scan(1.17)) is not None  # once where it stopped ...
-    assert loc.on_scan(_scan(1.2)) is None  # ... and not again while it stands
+    assert loc.on_scan(_scan(1.17)).estimate is not None  # once where it stopped ...
+    assert loc.on_scan(_scan(1.2)).estimate is None  # ... and not again while it stands

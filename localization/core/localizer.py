@@ -1,24 +1,16 @@
-"""The localizer: one orchestrator, shared by the node, replay, the tuner and the benchmarks.
+"""The localizer: the one object the node, replay, the tuner and the benchmarks hold.
 
-It turns a stream of odometry twists and scans into pose estimates, by handing each input to the
-small part whose one job it is:
+It takes the inputs and hands each to the part whose one job it is:
 
     OdometryTimeline (timeline)   odometry on the scan clock; the pose at any time (anchor ⊕ Δ)
     ScanQueue (policies)          a scan waits for the odometry that covers its time
-    UpdatePolicy (policies)       does this scan update the filter (forced/moved/turned/stopped/every n)
-    MonteCarloLocalizer (filter)  motion update to the scan's time, sensor update, resampling
-    GlobalSeeder                  where a global spread puts its particles
-    RecoveryPolicy (recovery)     converged / tracking / lost, after each sensor update
-    RangeScaleEstimator           the lidar-to-map range scale, after each sensor update while tracking
-                                  (``range_scale_estimation``; core/range_scale.py)
+    ScanPipeline (pipeline)       one scan: move, gate, beams, deskew, weigh, resample, estimate, decide
+    check_initial_pose            an initial pose checked before it spreads a cloud
 
 One clock: every time here is on the scan clock; an odometry stamp t_k becomes t_k +
 odom_time_offset once, in the timeline. A scan's time t_s is ``scan.scan_time`` (the middle of its
-sweep when it is timed). Per scan, once the odometry reaches t_s:
-
-    particles ← particles ⊕ (Δ pieces from t_filter to t_s, with motion noise)      t_filter ← t_s
-    if the update policy says so: sensor update with the beams cast from the laser pose at each
-    beam's own time (deskew), resample, x̂(t_s) = weighted mean → the timeline's anchor
+sweep when it is timed); the pipeline runs it once the odometry reaches t_s, and its corrected
+estimate x̂(t_s) becomes the timeline's anchor.
 
 On each odometry message the pose at its time, x̂ ⊕ Δ(t_s, t'_k), is returned (what the node
 publishes on /pf/pose/odom and TF); each sensor-corrected x̂(t_s) is collected for
@@ -31,34 +23,34 @@ last one carried on by the new twist alone, so odometry never waits for a slow s
 """
 from __future__ import annotations
 
+import enum
 import logging
 import math
 import threading
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
 from localization.core.compile_cache import ensure_compiled
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import MonteCarloLocalizer
-from localization.core.global_seeder import GlobalSeeder
 from localization.core.initial_pose import check_initial_pose
 from localization.core.motion import MotionModel, MotionNoiseParams
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
-from localization.core.policies import ScanQueue, UpdatePolicy, UpdatePolicyParams
-from localization.core.range_scale import RangeScaleEstimator
-from localization.core.recovery import RecoveryPolicy, SwitchGlide
+from localization.core.pipeline import ScanPipeline, Used
+from localization.core.policies import ScanQueue
+from localization.core.recovery import Action
 from localization.core.scan import ScanData, scan_time
-from localization.core.scan_step import ScanStep, StepOutcome
 from localization.core.sensors import SensorModel
 from localization.core.sensors.beam import BeamModel, BeamModelParams
 from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
 from localization.core.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
 
-__all__ = ["Localizer", "PoseEstimate", "build_filter", "build_sensor_model"]
+__all__ = ["Ignored", "Localizer", "PoseEstimate", "ScanResult", "build_filter", "build_sensor_model"]
 
 def build_sensor_model(params: Parameters) -> SensorModel:
     """The sensor model the ``sensor_model`` parameter names, configured from parameters."""
@@ -76,6 +68,29 @@ def build_filter(params: Parameters, rng=None, sensor: SensorModel | None = None
     kld = KLDSampler.from_parameters(params) if params.adaptive_particles else None
     return MonteCarloLocalizer(motion, sensor, params.num_particles, params.resample_ess_fraction,
                                (params.roughening_xy, params.roughening_xy, params.roughening_theta), rng, kld)
+
+
+class Ignored(str, enum.Enum):
+    """Why ``on_scan`` did not take a scan (compares equal to its value)."""
+
+    UNUSABLE = "unusable"  # no ranges, or a non-finite stamp or angle
+    NOT_READY = "not ready"  # no map, or no initial pose
+    MAP_PENDING = "map pending"  # no map yet: the sensor model is preparing one
+    STALE = "stale"  # stamped long before the latest odometry (a clock jump or a stale message)
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """What ``on_scan`` did with a scan: ignored (why), or taken; the scans the call used (this one once the
+    odometry covers its time, and any that waited for odometry), oldest first."""
+
+    ignored: Ignored | None = None
+    used: tuple[Used, ...] = ()
+
+    @property
+    def estimate(self) -> PoseEstimate | None:
+        """The newest sensor-corrected estimate the call made (None: none)."""
+        return next((u.estimate for u in reversed(self.used) if u.estimate is not None), None)
 
 
 def scan_problem(scan: ScanData) -> tuple[str, str]:
@@ -107,52 +122,39 @@ class Localizer:
         self._pf = build_filter(p, sensor=self._model)
         self._timeline = OdometryTimeline(OdometryLimits.from_parameters(p))
         self._queue = ScanQueue(p.scan_max_wait, p.scan_queue_size)
-        self._policy = UpdatePolicy(UpdatePolicyParams.from_parameters(p))
-        self._seeder = GlobalSeeder(p, self.log)
-        self._recovery = RecoveryPolicy(p)
+        self._pipeline = ScanPipeline(p, self._pf, self._model, self._timeline, self.warn, self.log)
         self.map: OccupancyMap | None = None
         self.map_pending = False  # a map's sensor-model preparation is under way elsewhere
         self._held_pose = None  # (pose, covariance, stamp): an initial pose waiting for the map on its way
         self._corrections = Outbox()  # sensor-corrected estimates not yet taken (its own lock)
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
-        self._step = ScanStep(self._pf, self._timeline, self._policy, self._seeder, self._recovery, p, self.warn)
-        self._glide = SwitchGlide(p.recovery_switch_step, p.recovery_switch_turn, p.recovery_switch_glide_max)
-        self._range_scale = None  # RangeScaleEstimator (range_scale_estimation with the beam model)
-        if p.range_scale_estimation:
-            if self._model.supports_range_scale:
-                self._range_scale = RangeScaleEstimator.from_parameters(p)
-            else:
-                self.log.info("range_scale_estimation: the likelihood field does not learn the range scale "
-                              "(lidar_scale_to_map_scale as configured)")
-        self.recoveries = 0
-        # why the last on_scan could not use its scan: "map pending" (no map yet, the sensor model is
-        # preparing one), "not ready" (no map, or no initial pose), None (taken, or refused for its content)
-        self.scan_ignored: str | None = None
 
     has_map = property(lambda self: self.map is not None)
     ready = property(lambda self: self.map is not None and self._pf.initialized)
-    health = property(lambda self: self._recovery.health, doc="scan-map agreement, fast average (NaN: none)")
-    status = property(lambda self: self._recovery.status, doc="tracking, or: scans disagree with the map")
+    health = property(lambda self: self._pipeline.recovery.health, doc="scan-map agreement, fast average (NaN: none)")
+    status = property(lambda self: self._pipeline.recovery.status, doc="tracking, or: scans disagree with the map")
     num_particles = property(lambda self: self._pf.num_particles)
     global_mode = property(lambda self: self._pf.kld_hold, doc="a global spread, not yet converged")
     laser_offset = property(lambda self: np.array(self._model.laser_offset, dtype=float))
     waiting_scans = property(lambda self: len(self._queue), doc="scans waiting for odometry to reach them")
+    recoveries = property(lambda self: self._pipeline.recoveries, doc="switches to a challenger and re-spreads")
 
     beams_used = property(lambda self: self._pf.beams_used,
                           doc="(used, offered) beams of the last sensor update (beam skipping leaves some out); None")
 
-    refused_jumps = property(lambda self: self._step.refused_jumps,
+    refused_jumps = property(lambda self: self._pipeline.refused_jumps,
                              doc="sensor updates undone: they jumped to a place the scan fits no clearly better")
 
-    range_scale_online = property(lambda self: self._range_scale is not None,
+    range_scale_online = property(lambda self: self._pipeline.range_scale is not None,
                                   doc="the range scale is learnt while tracking (range_scale_estimation, beam model)")
 
     @property
     def range_scale(self) -> float:
         """The lidar-to-map range scale in use: the online estimate (``range_scale_estimation``), else
         ``lidar_scale_to_map_scale``."""
-        return self.params.lidar_scale_to_map_scale if self._range_scale is None else self._range_scale.scale
+        learnt = self._pipeline.range_scale
+        return self.params.lidar_scale_to_map_scale if learnt is None else learnt.scale
 
     def particles(self) -> np.ndarray:  # a copy (N, 3)
         with self._lock:
@@ -191,11 +193,8 @@ class Localizer:
             ensure_compiled(self.params, self.log)
         with self._lock:
             self._model.set_map(occupancy_map, prepared)
-            if self._range_scale is not None:  # a new map: its scale is learnt anew
-                self._range_scale.reset()
-                self._model.set_range_scale(self._range_scale.scale)
             self.map, self.map_pending = occupancy_map, False
-            self._recovery.set_map(occupancy_map, self._model.laser_offset)
+            self._pipeline.set_map(occupancy_map)
             if self._pf.initialized and occupancy_map.is_occupied_or_outside(self._pf.particles[:, :2]).all():
                 self.log.warning("new map: no particle lies in free space any more; waiting for a new initial pose")
                 self._pf.forget()
@@ -208,13 +207,12 @@ class Localizer:
         """The laser pose (x, y, yaw) in the robot frame, e.g. read from TF."""
         offset = np.asarray(offset, dtype=float).reshape(3)
         with self._lock:
-            self._model.set_laser_offset(offset)
-            self._recovery.set_laser_offset(offset)
+            self._pipeline.set_laser_offset(offset)
 
     def request_update(self) -> None:
         """The next scan updates the filter even without motion (nav2's request_nomotion_update)."""
         with self._lock:
-            self._policy.force()
+            self._pipeline.policy.force()
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
         """(Re-)initialise the cloud around a pose (``core.initial_pose`` checks it); False: refused.
@@ -227,10 +225,8 @@ class Localizer:
         if init is None:
             return False
         with self._lock:
-            self._pf.resize(self.params.num_particles)
-            self._pf.hold_count(False)
-            self._pf.initialize_gaussian(init.pose, init.covariance, init.std)
-            self._after_init_locked(stamp, temper=True)
+            self._pipeline.initialize(init, stamp)
+            self._queue.clear()
         return True
 
     def _apply_held_pose(self) -> None:
@@ -247,23 +243,9 @@ class Localizer:
         if self.map is None:
             self.log.warning("global localization requested before a map arrived: will spread once it does")
             return False
-        self._seeder.spread(self._pf, self.map)
-        self._after_init_locked(stamp)
-        return True
-
-    def _after_init_locked(self, stamp: float | None, temper: bool = False) -> None:
-        """The particles describe ``stamp`` (scan clock; the newest odometry's time if unusable); ``temper``:
-        the first sensor update is tempered (a Gaussian cloud around an initial pose)."""
-        self._recovery.restart()
-        self._glide.stop()
-        self._policy.force()
+        self._pipeline.spread(stamp)
         self._queue.clear()
-        t = self._timeline.usable(stamp) if not self._timeline.empty else stamp
-        self._step.restart(t)
-        self._step.temper_next = temper
-        est = self._pf.estimate()
-        t = t if t is not None and math.isfinite(t) else 0.0
-        self._timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))
+        return True
 
     def on_odometry(self, twist: TwistData, run_scans: bool = True) -> PoseEstimate | None:
         """Add odometry; the corrected estimate carried to its time t'_k (``run_scans`` False: the scans
@@ -273,7 +255,9 @@ class Localizer:
             self._carried = self._timeline.limits.carry(self._carried, twist)
             return self._carried
         try:
-            accepted = self._drain_locked(run_scans)
+            accepted = self._add_odometry_locked()
+            if run_scans:
+                self._run_released_locked()
             if not self.ready:
                 self.warn("odom-not-ready", waiting(self, "odometry kept; no pose yet"), logging.INFO)
             self._carried = self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
@@ -284,91 +268,64 @@ class Localizer:
     def run_waiting(self) -> None:
         """Use the scans the odometry received so far has released (the sensor-update thread's call)."""
         with self._lock:
-            self._drain_locked()
+            self._add_odometry_locked()
+            self._run_released_locked()
 
-    def _drain_locked(self, run_scans: bool = True) -> bool:
-        """Odometry from the inbox into the timeline, then every scan it covers; the last one accepted?"""
+    def _add_odometry_locked(self) -> bool:
+        """Odometry from the inbox into the timeline; was the last one accepted?"""
         accepted = False
         while self._inbox:
             verdict = self._timeline.add(self._inbox.popleft())
             accepted = verdict.accepted
             if not accepted:
                 self.warn(verdict.key, verdict.problem)
-            elif verdict.restart is not None and self._step.t_filter is not None:  # a new history: the
-                self._step.restart(verdict.restart)  # filter's times move to its start
+            elif verdict.restart is not None and self._pipeline.t_filter is not None:  # a new history: the
+                self._pipeline.restart_clock(verdict.restart)  # filter's times move to its start
         self._timeline.rebase_anchor()  # keep the history short
-        self._timeline.trim(self._step.t_filter)
-        if not run_scans:
-            return accepted
+        self._timeline.trim(self._pipeline.t_filter)
+        return accepted
+
+    def _run_released_locked(self) -> tuple[Used, ...]:
+        """Every scan the odometry now covers, oldest first, through the pipeline."""
+        used = []
         for item in self._queue.release(None if self._timeline.empty else self._timeline.latest):
             if item.late:
                 self.warn("scan-late", item.warning(self.params.scan_max_wait))
-            self._update_locked(item.scan, item.time)
-        return accepted
+            used.append(self._run_locked(item.scan, item.time))
+        return tuple(used)
 
-    def on_scan(self, scan: ScanData) -> PoseEstimate | None:
-        """Queue a scan until odometry reaches its time, and use every scan that may be used now;
-        returns the newest sensor-corrected estimate made by this call (None: none)."""
+    def on_scan(self, scan: ScanData) -> ScanResult:
+        """Queue a scan until odometry reaches its time, and use every scan that may be used now; what
+        happened to it (``ScanResult``: ignored and why, or the scans used and the newest estimate)."""
         key, problem = scan_problem(scan)
         if key:
-            return self.warn(key, problem)
+            self.warn(key, problem)
+            return ScanResult(Ignored.UNUSABLE)
         with self._lock:
             if not self.ready:
-                self.scan_ignored = "map pending" if self.map_pending else "not ready"
-                return self.warn("scan-not-ready", waiting(self, "scan ignored"), logging.INFO)
-            self.scan_ignored = None
+                self.warn("scan-not-ready", waiting(self, "scan ignored"), logging.INFO)
+                return ScanResult(Ignored.MAP_PENDING if self.map_pending else Ignored.NOT_READY)
             latest = self._timeline.latest
             t_s = self.scan_time(scan) if self.params.align_odometry or latest is None else latest
             if latest is not None and t_s < latest - self.params.odom_max_gap:
-                return self.warn("scan-stale", f"scan stamped {latest - t_s:.2f} s before the latest odometry "
-                                 "ignored (a clock jump or a stale message)")
-            self._newest = None
+                self.warn("scan-stale", f"scan stamped {latest - t_s:.2f} s before the latest odometry ignored "
+                          "(a clock jump or a stale message)")
+                return ScanResult(Ignored.STALE)
             self._queue.push(t_s, scan)
-            self._drain_locked()
-            return self._newest
+            self._add_odometry_locked()
+            return ScanResult(used=self._run_released_locked())
 
     def flush(self) -> None:
         """Use every waiting scan now, the last twist extrapolated (the end of a recording)."""
         with self._lock:
             for item in self._queue.release(None):
-                self._update_locked(item.scan, item.time)
+                self._run_locked(item.scan, item.time)
 
-    def _update_locked(self, scan: ScanData, t_s: float) -> None:
-        """One scan at its time: the scan step; a re-spread or a corrected estimate (the new anchor)."""
-        watch = not self.global_mode and self.params.recovery_jump_glide > 0.0 and not self._glide.active  # jumps?
-        out = self._step.run(scan, t_s, self.map, self.global_mode, check_jump=watch)
-        if out.respread:
-            self.recoveries += 1
-            self._spread_locked(t_s)
-        tracking = (out.estimate is not None and out.switched is None and not out.respread and not out.refused
-                    and not self.global_mode)
-        if self._range_scale is not None and tracking and not self._recovery.holding:
-            self._update_range_scale(out)
-        carried = out.published  # the last published pose carried to this scan, when a glide needs it
-        if carried is None and (out.switched is not None or self._glide.active):
-            carried = self._timeline.pose_at(t_s)
-        published = None if carried is None else carried.pose
-        if out.switched is not None:
-            self.recoveries += 1
-            self._glide.start(published, out.switched.pose)
-        elif out.jumped:  # kept: the scan fits the new place clearly better
-            self._glide.start(published, out.estimate.pose)
-        est = None
-        if out.estimate is not None:
-            est = out.switched or (out.estimate if not out.respread else self._pf.estimate())
-        elif self._glide.active:  # no sensor update (e.g. standing): the glide goes on, the cloud moved on odometry
-            est = self._pf.estimate()
-        if est is not None:
-            pose, cov = self._glide.apply(published, est.pose, est.covariance)
-            corrected = PoseEstimate(stamp=t_s, pose=pose, covariance=cov)
-            self._timeline.set_anchor(corrected)
-            self._newest = self._corrections.put(corrected)
-
-    def _update_range_scale(self, out: StepOutcome) -> None:
-        """The range scale after a tracking sensor update: the beams that update used (deskewed as it
-        deskewed them) against the ranges ray cast at its estimate (``core.range_scale``)."""
-        (rmin, rmax), beams = out.range_limits, out.beams
-        probe = self._model.range_probe(beams.angles, out.offsets, rmax)
-        if self._range_scale.update(beams.ranges, probe.cast, out.estimate.pose, rmin, probe.z_max, probe.reach,
-                                    out.estimate.covariance, probe.wall_depth):
-            self._model.set_range_scale(self._range_scale.scale)
+    def _run_locked(self, scan: ScanData, t_s: float) -> Used:
+        """One scan through the pipeline; its corrected estimate is collected for ``take_corrections``."""
+        used = self._pipeline.run(scan, t_s)
+        if used.action is Action.RESPREAD:  # the scans waiting describe the cloud before it
+            self._queue.clear()
+        if used.estimate is not None:
+            self._corrections.put(used.estimate)
+        return used

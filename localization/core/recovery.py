@@ -1,70 +1,114 @@
-"""Recovery policy: tracking, or holding while the scans disagree with the map — never a jump.
+"""Recovery: the one owner of what a sensor update leads to. ``Recovery.decide`` takes the update's result
+(``Update``) and returns one ``Decision``; the pipeline applies it in one place.
 
 After every sensor update the estimate x̂ is scored against the (downsampled) scan: the scan–map
 agreement a ∈ [0, 1] (``health.AgreementScorer``: the share of valid beams ending within 0.10 m of an
 occupied cell). ``health.HealthMonitor`` averages it (fast and slow) and calls the filter lost when
-the fast average stays low for ``health_lost_updates`` updates. Then, with ``recovery`` on:
+the fast average stays low for ``health_lost_updates`` updates. The decisions, in the order they are
+taken:
 
-    hold       the cloud is kept and moves on odometry only (a scan the map cannot explain — moved
-               furniture, a changed building — must not drag it); each scan still scores the estimate,
-               and the fast average back above the lost floor resumes tracking
-    search     every ``recovery_search_period`` s (scan clock) without a challenger, the global seeder
-               proposes poses that fit the current scan (``filter.global_init.seed_from_scan``) and a
-               small second cloud of ``recovery_particles`` — the challenger — starts there; it moves
-               and is updated with the same odometry and scans as the main cloud
-    switch     only when the converged challenger's agreement a_c beats the main estimate's a_e and is
-               what this map and sensor normally score: a_c ≥ a_e + recovery_margin and
-               a_c ≥ max(health_lost_floor, a_normal − recovery_margin), a_normal the highest slow average
-               seen while tracking (what this map and sensor score when all is well), for
-               ``recovery_confirm_updates`` updates in a row while the robot travelled
-               ``recovery_confirm_distance`` m (a look-alike place rarely keeps fitting as the robot moves;
-               a near miss re-locks the same way, a short move): the main cloud becomes the challenger's. A
-               challenger that has not won within ``recovery_challenger_timeout`` s is dropped (the next
-               search may try again)
-    resume     the fast average back above the lost floor: tracking again
-    glide      after a switch the cloud is the challenger's at once, but the published estimate
-               moves there in steps (``SwitchGlide``): the odometry carries the last published pose x̄
-               to the scan's time, and with d = x̂ ⊖ x̄ (the cloud's estimate minus it, θ wrapped)
+    re-spread  every particle impossible for ``max_impossible_scans`` scans in a row: spread over the
+               free space (fewer: the weights are kept, the update skipped)
+    undo       a tracking update (no switch) whose estimate x̂ lies more than ``recovery_jump_glide`` m from
+               the published pose x̄ carried to the scan's time and more than JUMP_SIGMAS standard
+               deviations of x̄'s position covariance Σ in the direction of the move (dᵀ Σ⁻¹ d > JUMP_SIGMAS²,
+               d = x̂ − x̄ in x, y: ``is_jump``) is a jump. It is kept only if the scan fits there clearly
+               better, a(x̂) ≥ a(x̄) + recovery_margin, and then published in steps (the glide below);
+               otherwise the update is undone: the cloud as before it, moved on odometry. One scan never
+               moves the pose to a place that does not explain it better
+    spread     a global spread (start, service) is judged only once converged (cloud std <
+               global_converged_std): before that its mean says nothing about any of its hypotheses;
+               converge: it has, the cloud goes back to num_particles
+    hold       lost (with ``recovery`` on): the cloud moves on odometry only (a scan the map cannot
+               explain — moved furniture, a changed building — must not drag it); each scan still scores
+               the estimate, and the fast average back above the lost floor resumes tracking
+    switch     while holding, every ``recovery_search_period`` s (scan clock) without a challenger, the
+               global seeder proposes poses that fit the current scan and a small second cloud of
+               ``recovery_particles`` — the challenger — starts there; it moves and is updated with the
+               same odometry and scans. It wins when converged and its agreement a_c beats the main
+               estimate's a_e and is what this map and sensor normally score,
+                   a_c ≥ a_e + recovery_margin  and  a_c ≥ max(health_lost_floor, a_normal − recovery_margin)
+               (a_normal the highest slow average seen while tracking) for ``recovery_confirm_updates``
+               updates in a row over ``recovery_confirm_distance`` m (a look-alike place rarely keeps
+               fitting as the robot moves): the cloud becomes the challenger's. A challenger that has not
+               won within ``recovery_challenger_timeout`` s is dropped
+    track      otherwise: the update stands
 
-                   x̄ ← x̄ + f·d,   f = min(1, recovery_switch_step / |d_xy|, recovery_switch_turn / |d_θ|)
+A switch and a kept jump are published in steps (``SwitchGlide``): the odometry carries the last
+published pose x̄ to the scan's time, and with d = x̂ ⊖ x̄ (θ wrapped)
 
-               per sensor update, its covariance widened by the part still to go, (1 − f)² d dᵀ on the
-               diagonal, until f = 1: a confirmed correction is never one jump of the published pose,
-               however far (the glide is a correction, not a motion: its straight path may cross a wall,
-               and the covariance says how far there is still to go). The glide goes on with every scan,
-               the robot moving or not. ``recovery_switch_glide_max`` > 0 publishes a switch farther than
-               that at once (a robot that may be carried elsewhere)
-    jump       a tracking update (no switch) whose estimate x̂ lies more than ``recovery_jump_glide`` m from
-               x̄ and more than JUMP_SIGMAS standard deviations of x̄'s position covariance Σ in the
-               direction of the move (dᵀ Σ⁻¹ d > JUMP_SIGMAS², d = x̂ − x̄ in x, y: a cloud whose weight
-               moved from one place to another after the map disagreed for a while) is a jump. It is
-               kept only if the scan fits there clearly better than at x̄,
+    x̄ ← x̄ + f·d,   f = min(1, recovery_switch_step / |d_xy|, recovery_switch_turn / |d_θ|)
 
-                   a(x̂) ≥ a(x̄) + recovery_margin,
-
-               and then glides the same way; otherwise the update is undone (the cloud as before it,
-               moved on odometry, one log line): one scan never moves the pose to a place that does not
-               explain it better — after a hold, a cloud spread by odometry noise can otherwise collapse
-               onto a look-alike pose half a metre and tens of degrees away from where odometry says
-
-A global spread (start, service) is judged only once converged (cloud std < global_converged_std):
-before that, its mean says nothing about any of its hypotheses. ``status`` is what the node reports.
+per scan, the covariance widened by (1 − f)² d dᵀ on the diagonal, until f = 1. The glide is a
+correction, not a motion (its straight path may cross a wall); it goes on with every scan, the robot
+moving or not. ``recovery_switch_glide_max`` > 0 publishes a switch farther than that at once.
+``status`` is what the node reports.
 """
 from __future__ import annotations
 
+import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.filter.mcl import Estimate, Snapshot
 from localization.core.geometry import wrap_angle
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
+from localization.core.scan import Scan
+from localization.core.timeline import PoseEstimate
 
 COV_FLOOR = 1e-12  # m²: added to the published position covariance before inverting it (a point cloud)
 JUMP_SIGMAS = 3.0  # a tracking update's move beyond this many standard deviations of the published pose can jump
 
 TRACKING, HOLDING = "tracking", "scans disagree with the map"
+
+
+class Action(enum.Enum):
+    """What a scan does to the cloud (module docstring)."""
+
+    SKIP = "skip"  # no sensor update: not due, no valid beam, or every particle impossible (weights kept)
+    TRACK = "track"  # the update stands
+    UNDO = "undo"  # the update jumped to a place the scan fits no clearly better: the cloud as before it
+    HOLD = "hold"  # the scans disagree with the map: the cloud moves on odometry only
+    SWITCH = "switch"  # the challenger won: the cloud becomes the challenger's
+    RESPREAD = "re-spread"  # every particle impossible, scan after scan: spread over the free space
+    SPREAD = "spread"  # a global spread, not yet converged
+    CONVERGE = "converge"  # a global spread has converged: back to num_particles
+
+
+@dataclass(frozen=True)
+class Decision:
+    """The one value ``Recovery.decide`` returns for a scan."""
+
+    action: Action
+    estimate: Estimate | None = None  # the cloud's estimate once the action is applied (None: SKIP, RESPREAD)
+    glide: bool = False  # published in steps toward ``estimate`` (a switch, or an update kept though it jumped)
+    cloud: Snapshot | None = None  # UNDO: the cloud before the update; SWITCH: the challenger's
+
+
+@dataclass(frozen=True)
+class Update:
+    """A scan's sensor update, as the recovery decides on it."""
+
+    time: float  # s, scan clock
+    beams: Scan  # the beams the update used
+    range_min: float  # m: the scan's range limits
+    range_max: float
+    offsets: np.ndarray | None  # (B, 3) their deskew offsets (None: a rigid scan)
+    travelled: float  # m since the previous sensor update
+    global_mode: bool  # a global spread, not yet converged, before this update
+    estimate: Estimate | None  # the cloud's after the update (holding: moved on odometry only); None: impossible
+    impossible: int  # scans in a row that made every particle impossible
+    before: Snapshot | None = None  # the cloud before the update, when its move is judged (a jump)
+    published: PoseEstimate | None = None  # the published pose carried to ``time``, when the move is judged
+
+    @property
+    def scored(self) -> tuple:
+        """(ranges, angles, range_min, range_max): what the agreement scores."""
+        return self.beams.ranges, self.beams.angles, self.range_min, self.range_max
 
 
 @dataclass(frozen=True)
@@ -75,11 +119,16 @@ class Judgement:
     message: str = ""  # what to log (empty: nothing)
 
 
-class RecoveryPolicy:
-    def __init__(self, params):
-        self.params = params
+class Recovery:
+    """``challenger(occupancy_map, ranges, angles, range_max)`` starts a challenger cloud (the global
+    seeder's); ``warn(key, message)`` logs one throttled line."""
+
+    def __init__(self, params, challenger: Callable, warn):
+        self.params, self.warn = params, warn
+        self._new_challenger = challenger
         self.monitor = HealthMonitor.from_params(params)
         self._scorer: AgreementScorer | None = None
+        self._map: OccupancyMap | None = None
         self.holding = False  # lost: the scans disagree with the map around the estimate
         self.challenger = None  # a MonteCarloLocalizer started where the scan fits, or None
         self._challenger_since = -math.inf  # s, scan clock
@@ -92,6 +141,7 @@ class RecoveryPolicy:
     status = property(lambda self: HOLDING if self.holding else TRACKING)
 
     def set_map(self, occupancy_map: OccupancyMap, laser_offset) -> None:
+        self._map = occupancy_map
         self._scorer = AgreementScorer(occupancy_map, laser_offset, range_scale=self.params.lidar_scale_to_map_scale)
         self.monitor.reset()
         self._stop_holding()
@@ -112,15 +162,55 @@ class RecoveryPolicy:
         """Scan–map agreement of a pose; ``beams`` = (ranges, angles, range_min, range_max)."""
         return self._scorer.score(pose, *beams)
 
-    def judge(self, pose, covariance, beams, global_mode: bool) -> Judgement:
+    # ------------------------------------------------------------------ the decision
+    def decide(self, u: Update) -> Decision:
+        """The one decision for a scan's sensor update (module docstring, in that order)."""
+        p = self.params
+        if u.estimate is None:  # every particle impossible: the weights were kept
+            if u.impossible < p.max_impossible_scans:
+                self.warn("scan-degenerate", "every particle has likelihood 0 for this scan: weights kept")
+                return Decision(Action.SKIP)
+            self.warn("scan-impossible", f"{u.impossible} scans in a row gave every particle likelihood 0 (all "
+                      "off the map or in walls): re-spreading particles over the free space")
+            return Decision(Action.RESPREAD)
+        estimate, undone, jumped = u.estimate, False, False
+        if u.before is not None and is_jump(u.published, estimate.pose, p.recovery_jump_glide):
+            undone = self._refuses(u.published.pose, estimate.pose, u.scored)
+            jumped = not undone
+            estimate = u.before.estimate() if undone else estimate
+        verdict = self._judge(estimate, u.scored, u.global_mode)
+        if verdict.message:
+            self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
+        switched = self._challenge(u, verdict.agreement)
+        if switched is not None:
+            return Decision(Action.SWITCH, switched.estimate(), glide=True, cloud=Snapshot(switched.particles,
+                                                                                           switched.log_weights))
+        if undone:
+            return Decision(Action.UNDO, estimate, cloud=u.before)
+        if u.global_mode:
+            return Decision(Action.CONVERGE if verdict.converged else Action.SPREAD, estimate)
+        return Decision(Action.HOLD if self.holding else Action.TRACK, estimate, glide=jumped)
+
+    def _refuses(self, published, pose, beams) -> bool:
+        """Does the scan fit ``pose`` (an update's jump) no clearly better than the ``published`` pose?"""
+        moved, kept = self.score(pose, beams), self.score(published, beams)
+        if not moved < kept + self.params.recovery_margin:
+            return False
+        self.warn("jump-refused", f"a sensor update moved the estimate {math.dist(pose[:2], published[:2]):.2f} m "
+                  f"to a place the scan fits no clearly better (agreement {moved:.2f}, {kept:.2f} at the published "
+                  "pose): update undone, the pose moves on odometry")
+        return True
+
+    def _judge(self, estimate: Estimate, beams, global_mode: bool) -> Judgement:
+        """Converged / lost / back to tracking, from the estimate's agreement."""
         p = self.params
         converged = False
         if global_mode:
-            if cloud_spread(covariance) >= p.global_converged_std:
+            if cloud_spread(estimate.covariance) >= p.global_converged_std:
                 return Judgement()  # still spread
             converged = True
             self.restart()
-        agreement = self.score(pose, beams)
+        agreement = self.score(estimate.pose, beams)
         lost = self.monitor.update(agreement) and p.recovery and not self.holding
         if not self.holding and math.isfinite(self.monitor.slow) and self.monitor.samples >= p.health_lost_updates:
             self._normal = max(self.monitor.slow, self._normal) if math.isfinite(self._normal) else self.monitor.slow
@@ -136,31 +226,35 @@ class RecoveryPolicy:
             message = f"scans agree with the map again (agreement {self.monitor.fast:.2f}): tracking"
         return Judgement(converged=converged, lost=lost, agreement=agreement, message=message)
 
-    def search_due(self, t: float) -> bool:
-        """Start a challenger now? (holding, none running, the last search long enough ago)"""
-        return self.holding and self.challenger is None and t - self._last_search >= self.params.recovery_search_period
-
-    def start(self, challenger, t: float) -> None:
-        self.challenger, self._challenger_since, self._last_search = challenger, t, t
-        self._wins, self._won_distance = 0, 0.0
-
-    def challenge(self, main_agreement: float, beams, t: float, distance: float) -> str:
-        """After the challenger's own update (``distance``: m travelled since the previous update):
-        "switch", "drop" or "" (keep watching)."""
-        p, c = self.params, self.challenger
+    # ------------------------------------------------------------------ the challenger
+    def _challenge(self, u: Update, main_agreement: float):
+        """While holding: start, update and judge a challenger; the challenger when it wins (None: no switch)."""
+        p = self.params
+        if self.holding and self.challenger is None and u.time - self._last_search >= p.recovery_search_period:
+            self.challenger = self._new_challenger(self._map, u.beams.ranges, u.beams.angles, u.range_max)
+            self._challenger_since = self._last_search = u.time
+            self._wins, self._won_distance = 0, 0.0
+            return None  # its first update is the next scan's
+        c = self.challenger
+        if c is None:
+            return None
+        c.sensor_update(u.beams.ranges, u.beams.angles, u.offsets, range_max=u.range_max)
         est = c.estimate()
-        a_c = self.score(est.pose, beams) if cloud_spread(est.covariance) < p.global_converged_std else math.nan
+        a_c = self.score(est.pose, u.scored) if cloud_spread(est.covariance) < p.global_converged_std else math.nan
         normal = self._normal - p.recovery_margin if math.isfinite(self._normal) else 0.0
         better = (math.isfinite(a_c) and a_c >= max(p.health_lost_floor, normal)
                   and a_c >= (main_agreement if math.isfinite(main_agreement) else 0.0) + p.recovery_margin)
         self._wins = self._wins + 1 if better else 0
-        self._won_distance = self._won_distance + distance if better else 0.0
+        self._won_distance = self._won_distance + u.travelled if better else 0.0
         if self._wins >= p.recovery_confirm_updates and self._won_distance >= p.recovery_confirm_distance:
-            return "switch"
-        if t - self._challenger_since > p.recovery_challenger_timeout:
+            self.restart()
+            self.warn("recovery-switch", f"recovery: the scans fit ({est.pose[0]:.2f}, {est.pose[1]:.2f}) clearly "
+                      f"better for {p.recovery_confirm_updates}+ updates over {p.recovery_confirm_distance} m: "
+                      "the cloud moves there")
+            return c
+        if u.time - self._challenger_since > p.recovery_challenger_timeout:
             self.challenger, self._wins = None, 0
-            return "drop"
-        return ""
+        return None
 
 
 def is_jump(published, pose, jump: float) -> bool:
@@ -180,7 +274,7 @@ def is_jump(published, pose, jump: float) -> bool:
 
 
 class SwitchGlide:
-    """The published estimate's way to a place a challenger won (module doc, "glide")."""
+    """The published estimate's way to a place a switch or a kept jump moved the cloud (module doc)."""
 
     def __init__(self, step: float, turn: float, farthest: float):
         self.step, self.turn = float(step), float(turn)  # m, rad per sensor update (0: at once)
@@ -188,7 +282,7 @@ class SwitchGlide:
         self.active = False
 
     def start(self, published, pose) -> None:
-        """A switch from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
+        """A glide from the ``published`` pose (carried to the switch's time; None: none) to ``pose``."""
         far = published is None or (self.farthest > 0 and
                                     math.hypot(pose[0] - published[0], pose[1] - published[1]) > self.farthest)
         self.active = self.step > 0 and self.turn > 0 and not far

@@ -1,0 +1,251 @@
+"""The scan pipeline: one scan at its time t_s (scan clock), top to bottom, each stage once.
+
+    move      particles ← particles ⊕ (Δ piece + ε) for each constant-twist piece of (t_filter, t_s]
+              (``MotionModel``; exactly back, without noise, when t_s < t_filter); a challenger moves too
+    gate      s, φ = path length and rotation since the last update; ``UpdatePolicy.reason`` decides
+    beams     ~num_beams_per_particle beams; no return (inf) = a max-range reading at the scan's range_max;
+              a pending global spread is seeded from them (``GlobalSeeder``)
+    deskew    beam b cast from the laser pose at its own time t_b = t_0 + i_b · time_increment:
+              δ_b = L⁻¹ ⊕ Δ_b ⊕ L, Δ_b the robot's arc under the odometry twist at t_s over t_b − t_s
+    weigh     log w ← log w + log p(z | x) / squash, normalised (the first update after an initial pose in
+              tempered stages, ``initial_update_stages``); not while holding
+    resample  when the effective sample size is low (``MonteCarloLocalizer``)
+    estimate  the weighted mean and covariance
+    decide    ``Recovery.decide``: one ``Decision`` (track, undo, hold, switch, re-spread, spread, converge)
+    apply     the decision, in one place (``_apply``): the cloud restored, replaced or re-spread, the range
+              scale learnt while tracking, the published estimate (gliding after a switch or a kept jump)
+              becomes the timeline's anchor
+
+A scan that is not due, or has no valid beam, skips to ``apply`` with ``Action.SKIP`` (a glide goes on).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from localization.core.filter.mcl import MonteCarloLocalizer
+from localization.core.geometry import compose, integrate_twists, inverse
+from localization.core.global_seeder import GlobalSeeder
+from localization.core.initial_pose import InitialPose
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.policies import UpdatePolicy, UpdatePolicyParams
+from localization.core.range_scale import RangeScaleEstimator
+from localization.core.recovery import Action, Decision, Recovery, SwitchGlide, Update
+from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
+from localization.core.sensors import SensorModel
+from localization.core.timeline import OdometryTimeline, PoseEstimate
+
+SKIPPED = Decision(Action.SKIP)
+LEARNS = (Action.TRACK, Action.CONVERGE)  # the range scale is learnt from these updates (tracking)
+
+
+@dataclass(frozen=True)
+class Used:
+    """A scan the pipeline used: what was decided, and the corrected estimate it published (None: none)."""
+
+    action: Action
+    estimate: PoseEstimate | None = None
+
+
+def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, angle_step: int = 0):
+    """The downsampled beams of a scan (``num_beams`` evenly spread, or every ``angle_step``-th) and its
+    range limits (None, and a warning, when no beam is valid); unusable limits fall back to [0, the
+    sensor model's max range]."""
+    rmin, rmax = scan.range_min, scan.range_max
+    if not (math.isfinite(rmin) and math.isfinite(rmax) and 0 <= rmin < rmax):
+        warn("scan-limits", f"scan range limits [{rmin}, {rmax}] are unusable: using [0, {model_max_range:.2f}] m")
+        rmin, rmax = 0.0, model_max_range
+    beams = downsample_scan(scan, num_beams, rmin, rmax, angle_step)
+    if not np.isfinite(beams.ranges).any():
+        warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
+        return None
+    return beams, rmin, rmax
+
+
+def deskew_offsets(scan: ScanData, t_s: float, idx, twist, laser_offset, stamp: str = "first_beam",
+                   stamp_offset: float = 0.0):
+    """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each used beam's own time
+    t_b = t_0 + i_b · time_increment (t_0 the first beam's time under the scan_stamp convention), Δ_b
+    the robot's arc under ``twist`` (the odometry's at t_s), L the laser pose; None without sweep timing."""
+    sweep = sweep_increment(scan)
+    if not sweep > 0:
+        return None
+    t0 = first_beam_time(scan, stamp, stamp_offset)
+    robot = integrate_twists(twist[0], twist[1], twist[2], t0 + np.asarray(idx) * sweep - t_s)
+    laser = np.asarray(laser_offset, dtype=float)
+    return compose(inverse(laser), compose(robot, laser))
+
+
+class ScanPipeline:
+    """The scan's way through the filter (module docstring) and the cloud's (re)initialisation."""
+
+    def __init__(self, params, pf: MonteCarloLocalizer, model: SensorModel, timeline: OdometryTimeline, warn, log):
+        self.params, self.pf, self.model, self.timeline, self.warn = params, pf, model, timeline, warn
+        self.policy = UpdatePolicy(UpdatePolicyParams.from_parameters(params))
+        self.seeder = GlobalSeeder(params, log)
+        self.recovery = Recovery(params, lambda *scan: self.seeder.challenger(self.pf, *scan), warn)
+        self.glide = SwitchGlide(params.recovery_switch_step, params.recovery_switch_turn,
+                                 params.recovery_switch_glide_max)
+        self.range_scale = None  # RangeScaleEstimator (range_scale_estimation, a model that supports it)
+        if params.range_scale_estimation:
+            if model.supports_range_scale:
+                self.range_scale = RangeScaleEstimator.from_parameters(params)
+            else:
+                log.info("range_scale_estimation: the likelihood field does not learn the range scale "
+                         "(lidar_scale_to_map_scale as configured)")
+        self.map: OccupancyMap | None = None
+        self.t_filter: float | None = None  # s, scan clock: the time the particles describe
+        self.t_update: float | None = None  # s, scan clock: the last sensor update
+        self.impossible = 0  # scans in a row that gave every particle likelihood 0
+        self.temper_next = False  # the next sensor update is tempered (the first after an initial pose)
+        self.recoveries = 0  # switches and re-spreads
+        self.refused_jumps = 0  # updates undone: they jumped to a place the scan fits no clearly better
+
+    # ------------------------------------------------------------------ one scan
+    def run(self, scan: ScanData, t_s: float) -> Used:
+        """One scan at its time t_s, once the odometry reaches it (module docstring)."""
+        p, global_mode = self.params, self.pf.kld_hold
+        watch = not global_mode and p.recovery_jump_glide > 0.0 and not self.glide.active  # a jump is judged
+        self.move_to(t_s)  # move
+        travelled, twist = self._travel(t_s)
+        speed, yaw_rate = math.hypot(twist[0], twist[1]), twist[2]
+        if self.policy.reason(travelled[0], travelled[1], speed, yaw_rate) is None:  # gate
+            return self._apply(SKIPPED, t_s)
+        usable = usable_beams(scan, p.num_beams_per_particle, self.model.max_range, self.warn, p.angle_step)  # beams
+        if usable is None:
+            return self._apply(SKIPPED, t_s)
+        beams, rmin, rmax = usable
+        self.seeder.seed(self.pf, self.map, beams.ranges, beams.angles, rmax)
+        offsets = deskew_offsets(scan, t_s, beams.indices, twist, self.model.laser_offset, p.scan_stamp,
+                                 p.scan_stamp_offset) if p.deskew and self.model.supports_deskew else None  # deskew
+        published = self.timeline.pose_at(t_s) if watch else None  # where a jump is judged from
+        holding = self.recovery.holding
+        before = self.pf.snapshot() if published is not None and not holding else None
+        possible = holding or self._weigh(beams.ranges, beams.angles, offsets, rmax)  # weigh, resample
+        estimate = None
+        if possible:
+            self.impossible, self.t_update = 0, t_s
+            self.policy.updated(speed, yaw_rate)
+            estimate = self.pf.estimate()  # estimate (holding: the cloud moved on odometry only)
+        else:
+            self.impossible += 1
+        update = Update(t_s, beams, rmin, rmax, offsets, travelled[0], global_mode, estimate, self.impossible,
+                        before, published)
+        return self._apply(self.recovery.decide(update), t_s, update)  # decide, apply
+
+    def move_to(self, t: float) -> None:
+        """Particles (and a challenger's) to time t through the odometry (noise per piece; exactly
+        back if t is older). A t on another clock than the odometry's (a stamp jump) moves nothing:
+        the motion across the jump is unknown."""
+        t_from = self.timeline.usable(self.t_filter)
+        if t_from is not None and not self.timeline.empty and self.timeline.usable(t) == t:
+            clouds = [c for c in (self.pf, self.recovery.challenger) if c is not None]
+            if t < t_from:
+                for cloud in clouds:
+                    cloud.shift(inverse(self.timeline.motion(t, t_from)))
+            dts, twists, slips = self.timeline.slip_segments(t_from, t)
+            for delta, (slip, slip_var) in zip(integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts),
+                                               slips):
+                for cloud in clouds:
+                    cloud.motion_update(delta, slip, slip_var)
+        self.t_filter = t
+
+    def _travel(self, t_s: float):
+        """((path length m, rotation rad) since the last sensor update, the odometry twist at t_s)."""
+        t_last = self.timeline.usable(self.t_update)
+        return self.timeline.travel(t_s if t_last is None else t_last, t_s), self.timeline.twist_at(t_s)
+
+    def _weigh(self, ranges, angles, offsets, range_max) -> bool:
+        """The cloud's sensor update, resampled when due: tempered when ``temper_next`` (cleared once it
+        succeeded). False: every particle impossible (the weights kept)."""
+        if not self.temper_next:
+            return self.pf.sensor_update(ranges, angles, offsets, range_max=range_max).ok
+        result = self.pf.tempered_update(ranges, angles, offsets, range_max, self.params.initial_update_stages)
+        self.temper_next = not result.ok
+        return result.ok
+
+    def _apply(self, decision: Decision, t_s: float, update: Update | None = None) -> Used:
+        """The one place a decision takes effect: the cloud, the counts, the range scale, the published
+        estimate (the timeline's new anchor)."""
+        action, estimate = decision.action, decision.estimate
+        if action is Action.RESPREAD:
+            self.recoveries += 1
+            self.spread(t_s)
+            return Used(action)
+        if action is Action.UNDO:
+            self.pf.restore(decision.cloud)
+            self.refused_jumps += 1
+        elif action is Action.SWITCH:
+            self.pf.set_particles(decision.cloud.particles)
+            self.recoveries += 1
+        elif action is Action.CONVERGE:
+            self.seeder.converged(self.pf, estimate.pose)
+        if action in LEARNS and self.range_scale is not None:
+            self._learn_range_scale(update, estimate)
+        published = update.published if update is not None else None
+        if published is None and (action is Action.SWITCH or self.glide.active):
+            published = self.timeline.pose_at(t_s)  # the last published pose carried to t_s: a glide's start
+        carried = None if published is None else published.pose
+        if decision.glide:
+            self.glide.start(carried, estimate.pose)
+        if estimate is None and self.glide.active:  # no update: the glide goes on, the cloud moved on odometry
+            estimate = self.pf.estimate()
+        if estimate is None:
+            return Used(action)
+        pose, covariance = self.glide.apply(carried, estimate.pose, estimate.covariance)
+        corrected = PoseEstimate(stamp=t_s, pose=pose, covariance=covariance)
+        self.timeline.set_anchor(corrected)
+        return Used(action, corrected)
+
+    def _learn_range_scale(self, update: Update, estimate) -> None:
+        """The range scale from a tracking update: its beams (deskewed as it deskewed them) against the
+        ranges ray cast at its estimate (``core.range_scale``)."""
+        probe = self.model.range_probe(update.beams.angles, update.offsets, update.range_max)
+        if self.range_scale.update(update.beams.ranges, probe.cast, estimate.pose, update.range_min, probe.z_max,
+                                   probe.reach, estimate.covariance, probe.wall_depth):
+            self.model.set_range_scale(self.range_scale.scale)
+
+    # ------------------------------------------------------------------ the map, the laser, (re)initialisation
+    def set_map(self, occupancy_map: OccupancyMap) -> None:
+        """A new map (the sensor model already has it): its range scale is learnt anew."""
+        if self.range_scale is not None:
+            self.range_scale.reset()
+            self.model.set_range_scale(self.range_scale.scale)
+        self.map = occupancy_map
+        self.recovery.set_map(occupancy_map, self.model.laser_offset)
+
+    def set_laser_offset(self, offset) -> None:
+        self.model.set_laser_offset(offset)
+        self.recovery.set_laser_offset(offset)
+
+    def initialize(self, init: InitialPose, stamp: float | None) -> None:
+        """A cloud around an initial pose, describing ``stamp``; its first update tempered."""
+        self.pf.resize(self.params.num_particles)
+        self.pf.hold_count(False)
+        self.pf.initialize_gaussian(init.pose, init.covariance, init.std)
+        self.restart(stamp, temper=True)
+
+    def spread(self, stamp: float | None) -> None:
+        """A global spread over the map's free space (``GlobalSeeder``), describing ``stamp``."""
+        self.seeder.spread(self.pf, self.map)
+        self.restart(stamp)
+
+    def restart(self, stamp: float | None, temper: bool = False) -> None:
+        """The particles were (re-)initialised and describe ``stamp`` (scan clock; the newest odometry's time
+        if unusable); ``temper``: the first sensor update is tempered. Their estimate is the new anchor."""
+        self.recovery.restart()
+        self.glide.stop()
+        self.policy.force()
+        t = self.timeline.usable(stamp) if not self.timeline.empty else stamp
+        self.restart_clock(t)
+        self.temper_next = temper
+        est = self.pf.estimate()
+        t = t if t is not None and math.isfinite(t) else 0.0
+        self.timeline.set_anchor(PoseEstimate(stamp=t, pose=est.pose, covariance=est.covariance))
+
+    def restart_clock(self, t: float | None) -> None:
+        """The filter's times move to t (an initialisation, or a new odometry history after a clock jump)."""
+        self.t_filter = self.t_update = t
+        self.impossible = 0
