@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -32,13 +33,22 @@ from localization.core.initial_pose import InitialPose
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.policies import UpdatePolicy, UpdatePolicyParams
 from localization.core.range_scale import RangeScaleEstimator
-from localization.core.recovery import Action, Decision, Recovery, SwitchGlide, Update
+from localization.core.recovery import Action, Beams, Decision, Recovery, SwitchGlide, Update
 from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
 from localization.core.sensors import SensorModel
 from localization.core.timeline import OdometryTimeline, PoseEstimate
 
 SKIPPED = Decision(Action.SKIP)
 LEARNS = (Action.TRACK, Action.CONVERGE)  # the range scale is learnt from these updates (tracking)
+
+
+class Gate(NamedTuple):
+    """A scan the update policy lets through: the motion since the last sensor update, the twist at its time."""
+
+    travelled: float  # m
+    twist: np.ndarray  # (vx, vy, ω) of the odometry at the scan's time
+    speed: float  # m/s
+    yaw_rate: float  # rad/s
 
 
 @dataclass(frozen=True)
@@ -106,33 +116,20 @@ class ScanPipeline:
     # ------------------------------------------------------------------ one scan
     def run(self, scan: ScanData, t_s: float) -> Used:
         """One scan at its time t_s, once the odometry reaches it (module docstring)."""
-        p, global_mode = self.params, self.pf.kld_hold
-        watch = not global_mode and p.recovery_jump_glide > 0.0 and not self.glide.active  # a jump is judged
+        global_mode = self.pf.kld_hold  # a global spread, not yet converged
+        judged = not global_mode and self.params.recovery_jump_glide > 0.0 and not self.glide.active
         self.move_to(t_s)  # move
-        travelled, twist = self._travel(t_s)
-        speed, yaw_rate = math.hypot(twist[0], twist[1]), twist[2]
-        if self.policy.reason(travelled[0], travelled[1], speed, yaw_rate) is None:  # gate
+        gate = self._gate(t_s)  # gate
+        if gate is None:
             return self._apply(SKIPPED, t_s)
-        usable = usable_beams(scan, p.num_beams_per_particle, self.model.max_range, self.warn, p.angle_step)  # beams
-        if usable is None:
+        beams = self._beams(scan)  # beams
+        if beams is None:
             return self._apply(SKIPPED, t_s)
-        beams, rmin, rmax = usable
-        self.seeder.seed(self.pf, self.map, beams.ranges, beams.angles, rmax)
-        offsets = deskew_offsets(scan, t_s, beams.indices, twist, self.model.laser_offset, p.scan_stamp,
-                                 p.scan_stamp_offset) if p.deskew and self.model.supports_deskew else None  # deskew
-        published = self.timeline.pose_at(t_s) if watch else None  # where a jump is judged from
-        holding = self.recovery.holding
-        before = self.pf.snapshot() if published is not None and not holding else None
-        possible = holding or self._weigh(beams.ranges, beams.angles, offsets, rmax)  # weigh, resample
-        estimate = None
-        if possible:
-            self.impossible, self.t_update = 0, t_s
-            self.policy.updated(speed, yaw_rate)
-            estimate = self.pf.estimate()  # estimate (holding: the cloud moved on odometry only)
-        else:
-            self.impossible += 1
-        update = Update(t_s, beams, rmin, rmax, offsets, travelled[0], global_mode, estimate, self.impossible,
-                        before, published)
+        offsets = self._deskew(scan, t_s, beams, gate.twist)  # deskew
+        published = self.timeline.pose_at(t_s) if judged else None  # a jump is judged from the published pose
+        before = self.pf.snapshot() if published is not None and not self.recovery.holding else None
+        estimate = self._weigh(beams, offsets, t_s, gate)  # weigh, resample, estimate (None: impossible)
+        update = Update(t_s, beams, offsets, gate.travelled, global_mode, estimate, self.impossible, before, published)
         return self._apply(self.recovery.decide(update), t_s, update)  # decide, apply
 
     def move_to(self, t: float) -> None:
@@ -152,19 +149,50 @@ class ScanPipeline:
                     cloud.motion_update(delta, slip, slip_var)
         self.t_filter = t
 
-    def _travel(self, t_s: float):
-        """((path length m, rotation rad) since the last sensor update, the odometry twist at t_s)."""
+    def _gate(self, t_s: float) -> Gate | None:
+        """The motion since the last sensor update and the twist at t_s, when the update policy lets this
+        scan update the filter (None: it does not)."""
         t_last = self.timeline.usable(self.t_update)
-        return self.timeline.travel(t_s if t_last is None else t_last, t_s), self.timeline.twist_at(t_s)
+        distance, angle = self.timeline.travel(t_s if t_last is None else t_last, t_s)
+        twist = self.timeline.twist_at(t_s)
+        gate = Gate(distance, twist, math.hypot(twist[0], twist[1]), twist[2])
+        return None if self.policy.reason(distance, angle, gate.speed, gate.yaw_rate) is None else gate
 
-    def _weigh(self, ranges, angles, offsets, range_max) -> bool:
-        """The cloud's sensor update, resampled when due: tempered when ``temper_next`` (cleared once it
-        succeeded). False: every particle impossible (the weights kept)."""
-        if not self.temper_next:
-            return self.pf.sensor_update(ranges, angles, offsets, range_max=range_max).ok
-        result = self.pf.tempered_update(ranges, angles, offsets, range_max, self.params.initial_update_stages)
-        self.temper_next = not result.ok
-        return result.ok
+    def _beams(self, scan: ScanData) -> Beams | None:
+        """The beams the update uses (None: no valid one); a pending global spread is seeded from them."""
+        p = self.params
+        usable = usable_beams(scan, p.num_beams_per_particle, self.model.max_range, self.warn, p.angle_step)
+        if usable is None:
+            return None
+        b, rmin, rmax = usable
+        self.seeder.seed(self.pf, self.map, b.ranges, b.angles, rmax)
+        return Beams(b.ranges, b.angles, b.indices, rmin, rmax)
+
+    def _deskew(self, scan: ScanData, t_s: float, beams: Beams, twist):
+        """Each beam's laser motion over the sweep (None: a rigid scan: deskew off, or no sweep timing)."""
+        p = self.params
+        if not (p.deskew and self.model.supports_deskew):
+            return None
+        return deskew_offsets(scan, t_s, beams.indices, twist, self.model.laser_offset, p.scan_stamp,
+                              p.scan_stamp_offset)
+
+    def _weigh(self, beams: Beams, offsets, t_s: float, gate: Gate):
+        """The cloud's sensor update, resampled when due (not while holding: the cloud moved on odometry
+        only), and its estimate; None: every particle impossible (the weights kept). The first update after
+        an initial pose is tempered (``temper_next``, cleared once it succeeded)."""
+        if not self.recovery.holding:
+            if not self.temper_next:
+                ok = self.pf.sensor_update(beams.ranges, beams.angles, offsets, range_max=beams.range_max).ok
+            else:
+                ok = self.pf.tempered_update(beams.ranges, beams.angles, offsets, beams.range_max,
+                                             self.params.initial_update_stages).ok
+                self.temper_next = not ok
+            if not ok:
+                self.impossible += 1
+                return None
+        self.impossible, self.t_update = 0, t_s
+        self.policy.updated(gate.speed, gate.yaw_rate)
+        return self.pf.estimate()
 
     def _apply(self, decision: Decision, t_s: float, update: Update | None = None) -> Used:
         """The one place a decision takes effect: the cloud, the counts, the range scale, the published
@@ -202,9 +230,10 @@ class ScanPipeline:
     def _learn_range_scale(self, update: Update, estimate) -> None:
         """The range scale from a tracking update: its beams (deskewed as it deskewed them) against the
         ranges ray cast at its estimate (``core.range_scale``)."""
-        probe = self.model.range_probe(update.beams.angles, update.offsets, update.range_max)
-        if self.range_scale.update(update.beams.ranges, probe.cast, estimate.pose, update.range_min, probe.z_max,
-                                   probe.reach, estimate.covariance, probe.wall_depth):
+        beams = update.beams
+        probe = self.model.range_probe(beams.angles, update.offsets, beams.range_max)
+        if self.range_scale.update(beams.ranges, probe.cast, estimate.pose, beams.range_min, probe.z_max, probe.reach,
+                                   estimate.covariance, probe.wall_depth):
             self.model.set_range_scale(self.range_scale.scale)
 
     # ------------------------------------------------------------------ the map, the laser, (re)initialisation

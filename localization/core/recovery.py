@@ -57,7 +57,6 @@ from localization.core.filter.mcl import Estimate, Snapshot
 from localization.core.geometry import wrap_angle
 from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.scan import Scan
 from localization.core.timeline import PoseEstimate
 
 COV_FLOOR = 1e-12  # m²: added to the published position covariance before inverting it (a point cloud)
@@ -90,13 +89,27 @@ class Decision:
 
 
 @dataclass(frozen=True)
+class Beams:
+    """The beams of a scan a sensor update uses, in the laser frame, and the scan's range limits."""
+
+    ranges: np.ndarray  # m (inf: no return)
+    angles: np.ndarray  # rad
+    indices: np.ndarray  # which beams of the full scan
+    range_min: float  # m
+    range_max: float  # m
+
+    @property
+    def scored(self) -> tuple:
+        """(ranges, angles, range_min, range_max): what the agreement scores."""
+        return self.ranges, self.angles, self.range_min, self.range_max
+
+
+@dataclass(frozen=True)
 class Update:
     """A scan's sensor update, as the recovery decides on it."""
 
     time: float  # s, scan clock
-    beams: Scan  # the beams the update used
-    range_min: float  # m: the scan's range limits
-    range_max: float
+    beams: Beams  # the beams the update used
     offsets: np.ndarray | None  # (B, 3) their deskew offsets (None: a rigid scan)
     travelled: float  # m since the previous sensor update
     global_mode: bool  # a global spread, not yet converged, before this update
@@ -104,11 +117,6 @@ class Update:
     impossible: int  # scans in a row that made every particle impossible
     before: Snapshot | None = None  # the cloud before the update, when its move is judged (a jump)
     published: PoseEstimate | None = None  # the published pose carried to ``time``, when the move is judged
-
-    @property
-    def scored(self) -> tuple:
-        """(ranges, angles, range_min, range_max): what the agreement scores."""
-        return self.beams.ranges, self.beams.angles, self.range_min, self.range_max
 
 
 @dataclass(frozen=True)
@@ -175,10 +183,10 @@ class Recovery:
             return Decision(Action.RESPREAD)
         estimate, undone, jumped = u.estimate, False, False
         if u.before is not None and is_jump(u.published, estimate.pose, p.recovery_jump_glide):
-            undone = self._refuses(u.published.pose, estimate.pose, u.scored)
+            undone = self._refuses(u.published.pose, estimate.pose, u.beams.scored)
             jumped = not undone
             estimate = u.before.estimate() if undone else estimate
-        verdict = self._judge(estimate, u.scored, u.global_mode)
+        verdict = self._judge(estimate, u.beams.scored, u.global_mode)
         if verdict.message:
             self.warn("recovery-lost" if verdict.lost else "recovery-back", verdict.message)
         switched = self._challenge(u, verdict.agreement)
@@ -231,16 +239,17 @@ class Recovery:
         """While holding: start, update and judge a challenger; the challenger when it wins (None: no switch)."""
         p = self.params
         if self.holding and self.challenger is None and u.time - self._last_search >= p.recovery_search_period:
-            self.challenger = self._new_challenger(self._map, u.beams.ranges, u.beams.angles, u.range_max)
+            self.challenger = self._new_challenger(self._map, u.beams.ranges, u.beams.angles, u.beams.range_max)
             self._challenger_since = self._last_search = u.time
             self._wins, self._won_distance = 0, 0.0
             return None  # its first update is the next scan's
         c = self.challenger
         if c is None:
             return None
-        c.sensor_update(u.beams.ranges, u.beams.angles, u.offsets, range_max=u.range_max)
+        c.sensor_update(u.beams.ranges, u.beams.angles, u.offsets, range_max=u.beams.range_max)
         est = c.estimate()
-        a_c = self.score(est.pose, u.scored) if cloud_spread(est.covariance) < p.global_converged_std else math.nan
+        converged = cloud_spread(est.covariance) < p.global_converged_std
+        a_c = self.score(est.pose, u.beams.scored) if converged else math.nan
         normal = self._normal - p.recovery_margin if math.isfinite(self._normal) else 0.0
         better = (math.isfinite(a_c) and a_c >= max(p.health_lost_floor, normal)
                   and a_c >= (main_agreement if math.isfinite(main_agreement) else 0.0) + p.recovery_margin)
