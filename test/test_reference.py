@@ -291,6 +291,33 @@ def test_odometry_chain_equals_its_loop_reference():
                                atol=1e-9)
 
 
+@pytest.mark.parametrize("block", [None, 1])
+def test_offset_profile_equals_its_loop_reference(monkeypatch, block):
+    """The time-offset profile, every offset × scan dead-reckoned in blocks, equals the one-offset-at-a-time
+    loop bit for bit (also with one offset per block)."""
+    from localization.eval.reference import smoother
+    rng = np.random.default_rng(7)
+    odo_t = np.cumsum(rng.uniform(0.015, 0.025, 500))
+    tw = np.column_stack([2.0 + 0.3 * rng.normal(size=500), 0.02 * rng.normal(size=500), rng.normal(size=500)])
+    t = np.arange(odo_t[20], odo_t[-20], 0.025)
+    K = len(t)
+    X = compose(dead_reckon(odo_t, tw, t - 0.05, 1.04), rng.normal(size=(K, 3)) * [0.005, 0.005, 0.002])
+    use = np.zeros(K, dtype=bool)
+    use[::3] = True
+    info = np.broadcast_to(np.eye(3) * 1e4, (K, 3, 3)).copy()
+    scales = {"match": 1.0, "odo_x": 1.0, "odo_y": 1.0, "odo_theta": 1.0}
+    graph = smoother._Graph(t, X, info, use, (odo_t, tw), OdometryNoise(), scales)
+    graph.set_sigmas(np.array([1.0]))
+    if block is not None:
+        monkeypatch.setattr(smoother, "PROFILE_BLOCK", block)
+    grid = np.arange(-0.3, 0.3 + 1e-9, 0.002)
+    cost, scale = graph.offset_profile(X, grid)
+    ref_cost, ref_scale = graph.offset_profile_loop(X, grid)
+    np.testing.assert_array_equal(cost, ref_cost)
+    np.testing.assert_array_equal(scale, ref_scale)
+    assert abs(grid[np.argmin(cost)] - 0.05) < 0.02 and abs(scale[np.argmin(cost)] - 1.04) < 0.02
+
+
 def test_marginal_covariances_equal_the_dense_inverse():
     """The blocks of (JᵀJ)⁻¹ from the block-tridiagonal recursion and the Schur complement equal a dense
     inverse (a small pose graph: consecutive factors, some matches, one unknown on every odometry row)."""

@@ -23,6 +23,8 @@ from localization.eval.reference.marginals import _marginal_covariances
 from localization.eval.reference.odometry import OdometryNoise, dead_reckon, odometry_chain
 from localization.eval.reference.tracker import Matches
 
+PROFILE_BLOCK = 60_000  # offsets × scans dead-reckoned in one pass of the offset profile (bounds its memory)
+
 
 @dataclass
 class Smoothed:
@@ -98,12 +100,43 @@ class _Graph:
 
         The dead-reckoned motion between two scans is piecewise smooth in δ, with a kink wherever a
         scan's time crosses an odometry stamp; with noisy twists the kinks make local minima, so δ
-        is started from the best of this profile rather than from 0."""
+        is started from the best of this profile rather than from 0.
+
+        Blocks of offsets × every scan in one vectorised pass each (``offset_profile_loop``: one
+        offset at a time, the reference it equals)."""
+        rel = relative(X[:-1], X[1:])
+        chain = odometry_chain(self.odo_t, self.odo_tw)
+        offsets = np.asarray(offsets, dtype=float)
+        cost, scale = np.zeros(len(offsets)), np.ones(len(offsets))
+        rows = max(1, PROFILE_BLOCK // max(self.K, 1))
+        for i in range(0, len(offsets), rows):
+            cost[i:i + rows], scale[i:i + rows] = self._profile_block(rel, chain, offsets[i:i + rows])
+        return cost, scale
+
+    def _profile_block(self, rel, chain, offsets) -> tuple[list, list]:
+        """``offset_profile`` for a few offsets (G,): every scan's dead-reckoned motion at each at once."""
+        G, K = len(offsets), self.K
+        w = 1.0 / self.sig ** 2
+        query = (self.t[None, :] - offsets[:, None]).ravel()
+        B = dead_reckon(self.odo_t, self.odo_tw, query, chain=chain).reshape(G, K, 3)
+        pred = relative(B[:, :-1], B[:, 1:])
+        den = np.sum(w[:, :2] * pred[..., :2] ** 2, axis=(1, 2))
+        num = np.sum(w[:, :2] * pred[..., :2] * rel[:, :2], axis=(1, 2))
+        scale = [float(np.clip(n / float(d), *SCALE_BOUNDS)) if float(d) > 0 else 1.0 for n, d in zip(num, den)]
+        pred[..., :2] *= np.array(scale)[:, None, None]
+        r2 = (relative_difference(rel, pred) / self.sig) ** 2 / 9.0
+        loss = np.sum(np.log1p(r2), axis=(1, 2))
+        cost = [4.5 * loss[g] + 0.5 * ((scale[g] - 1.0) / SCALE_PRIOR) ** 2 + 0.5 * (offsets[g] / OFFSET_PRIOR) ** 2
+                for g in range(G)]
+        return cost, scale
+
+    def offset_profile_loop(self, X, offsets) -> tuple[np.ndarray, np.ndarray]:
+        """``offset_profile`` one offset at a time (its reference, tests)."""
         rel = relative(X[:-1], X[1:])
         chain = odometry_chain(self.odo_t, self.odo_tw)
         w = 1.0 / self.sig ** 2
         cost, scale = np.zeros(len(offsets)), np.ones(len(offsets))
-        for i, d in enumerate(offsets):  # a profile over a grid of offsets: each a vectorised pass over the scans
+        for i, d in enumerate(offsets):
             B = dead_reckon(self.odo_t, self.odo_tw, self.t - d, chain=chain)
             pred = relative(B[:-1], B[1:])
             den = float(np.sum(w[:, :2] * pred[:, :2] ** 2))
