@@ -353,7 +353,7 @@ def test_lifecycle_transitions(context, drive):
         assert transition(Transition.TRANSITION_DEACTIVATE) and state() == "inactive"
         assert h.wait_until(lambda: probe.scan_pub.get_subscription_count() == 0, 5.0)
         assert transition(Transition.TRANSITION_CLEANUP) and state() == "unconfigured"
-        assert node.localizer is None or node.map_worker is None
+        assert node.localizer is None or node.map_install is None
         assert transition(Transition.TRANSITION_CONFIGURE) and state() == "inactive"  # again, after cleanup
 
 

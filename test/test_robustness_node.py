@@ -66,7 +66,8 @@ def node():
     n = ParticleFilterNode(context=ctx, parameter_overrides=[
         Parameter("num_particles", value=300), Parameter("global_num_particles", value=1500),
         Parameter("ray_caster", value="distance_transform"), Parameter("random_seed", value=3)])
-    n.pose_pub, n.particles_pub, n.health_pub, n.tf = Recorder(), Recorder(), Recorder(), Recorder()
+    out = n.outputs  # the node's publishers
+    out.pose_pub, out.particles_pub, out.health_pub, out.tf = Recorder(), Recorder(), Recorder(), Recorder()
     good_map = occupancy_grid_msg(corridor_map())
     n.on_map(good_map)
     n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
@@ -78,11 +79,12 @@ def node():
 
 
 def _outputs(n):
-    return [*n.pose_pub.sent, *n.particles_pub.sent, *n.health_pub.sent, *n.tf.sent]
+    out = n.outputs
+    return [*out.pose_pub.sent, *out.particles_pub.sent, *out.health_pub.sent, *out.tf.sent]
 
 
 def _clear(n):
-    for r in (n.pose_pub, n.particles_pub, n.health_pub, n.tf):
+    for r in (n.outputs.pose_pub, n.outputs.particles_pub, n.outputs.health_pub, n.outputs.tf):
         r.sent.clear()
 
 
@@ -155,13 +157,13 @@ def test_node_callbacks_survive_broken_messages_and_never_publish_nan(node, stre
     n = node
     # a known-good state first (a good map and pose, as a user would send), so each example stands alone
     n.on_map(n.good_map)
-    assert h.wait_until(lambda: n.map_worker.idle, 30.0)  # maps are installed on their own thread
+    assert h.wait_until(lambda: n.map_install.idle, 30.0)  # maps are installed on their own thread
     n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
     _clear(n)
     handlers = {"scan": n.process_scan, "odom": n.on_odometry, "initialpose": n.on_initialpose, "map": n.on_map}
     for kind, msg in stream:
         handlers[kind](msg)  # must not raise
-    assert h.wait_until(lambda: n.map_worker.idle, 30.0)
+    assert h.wait_until(lambda: n.map_install.idle, 30.0)
     bad = [m for m in _outputs(n) if not _finite_msg(m)]
     assert not bad
     assert np.all(np.isfinite(n.localizer.particles()))
@@ -172,7 +174,7 @@ def test_node_callbacks_survive_broken_messages_and_never_publish_nan(node, stre
 def test_node_keeps_working_after_broken_input_and_publishes_health(node):
     n = node
     n.on_map(n.good_map)
-    assert h.wait_until(lambda: n.map_worker.idle, 30.0)  # maps are installed on their own thread
+    assert h.wait_until(lambda: n.map_install.idle, 30.0)  # maps are installed on their own thread
     n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
     _clear(n)
     from localization.core.raycast.exact import ExactRayCaster
@@ -189,9 +191,9 @@ def test_node_keeps_working_after_broken_input_and_publishes_health(node):
             n.process_scan(bad)
         laser = pose + [0.275, 0.0, 0.0]
         n.process_scan(h.scan_msg(t_ns, ExactRayCaster(n.localizer.map, 10.0).cast(laser[None], angles)[0]))
-    assert len(n.pose_pub.sent) > 30 and len(n.health_pub.sent) > 10
+    assert len(n.outputs.pose_pub.sent) > 30 and len(n.outputs.health_pub.sent) > 10
     assert all(_finite_msg(m) for m in _outputs(n))
-    assert n.health_pub.sent[-1].data > 0.7
+    assert n.outputs.health_pub.sent[-1].data > 0.7
     assert np.hypot(*(n.localizer.estimate.pose[:2] - pose[:2])) < 0.2
 
 

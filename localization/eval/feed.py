@@ -3,11 +3,12 @@
 ``localization-replay`` (bag messages), the tuner (the same bags, read once), the robustness and
 models benchmarks (simulated recordings) all drive the core through ``Feeder.run``: each odometry
 twist, scan or initial pose goes to the Localizer in stamp order, and the log keeps every estimate
-(what the node publishes: after each odometry message and each sensor update, never older than
-the one before), every sensor-corrected estimate, the filter's health after each sensor update,
-the time spent inside the Localizer per call, the estimate at each scan's own time (the scan
-track, what a per-scan reference is compared with) and, with a scorer (``make_scorer``: the one
-way the evaluation builds it), the scan–map agreement of that estimate::
+(what the node publishes: after each odometry message and each sensor update, forward in time by
+the node's publish rule, ``core.publish_rule``, one pose per instant: the newest knowledge of it),
+every sensor-corrected estimate, the filter's health after each sensor update, the time spent
+inside the Localizer per call, the estimate at each scan's own time (the scan track, what a
+per-scan reference is compared with) and, with a scorer (``make_scorer``: the one way the
+evaluation builds it), the scan–map agreement of that estimate::
 
     t_k = localizer.scan_time(scan_k) (scan clock),   a_k = agreement(x̂(t_k), scan_k),
     x̂(t_k) = localizer.estimate_at(t_k) once odometry has reached t_k (the scan's sensor update,
@@ -28,6 +29,7 @@ from localization.core.localizer import Localizer, PoseEstimate
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
+from localization.core.publish_rule import ForwardInTime, Verdict
 from localization.core.scan import ScanData, beam_angles
 
 
@@ -51,9 +53,10 @@ class InitialPose:
 @dataclass
 class FeedLog:
     """What came out of the Localizer while feeding it. Stamps are on the scan clock (the time each
-    pose describes); ``est_t`` never goes backwards (what the node publishes on /pf/pose/odom)."""
+    pose describes); ``est_t`` goes forward (``core.publish_rule``, as the node publishes; it goes back only
+    where the data's clock went back by more than TIME_JUMP: the stream restarts)."""
 
-    est_t: list = field(default_factory=list)  # s, time of each published estimate (non-decreasing)
+    est_t: list = field(default_factory=list)  # s, time of each published estimate (increasing)
     est_poses: list = field(default_factory=list)  # (3,) each
     corrected_t: list = field(default_factory=list)  # s, each sensor-corrected estimate's scan time
     corrected_poses: list = field(default_factory=list)  # (3,) each
@@ -100,6 +103,7 @@ class Feeder:
         self._pending: deque[tuple[float, ScanData]] = deque()  # scans waiting to be scored, (t_k, scan)
         self._odometry_until = -math.inf  # s, scan clock: the newest odometry time returned
         self._angles: dict = {}
+        self._rule = ForwardInTime()  # the node's publish rule, on the estimates logged as published
 
     def _score_until(self, t: float) -> None:
         """Log x̂(t_k) (and score it, with a scorer) for the waiting scans whose time odometry (or a
@@ -132,8 +136,14 @@ class Feeder:
         return est, dt
 
     def _publish(self, est: PoseEstimate | None) -> None:
-        """A pose goes out only when it is not older than the last one (as the node does)."""
-        if est is not None and (not self.log.est_t or est.stamp >= self.log.est_t[-1]):
+        """A pose goes out by the node's publish rule (``core.publish_rule``); a second estimate of the
+        instant logged last (a correction at an odometry message's time) replaces it."""
+        if est is None:
+            return
+        verdict = self._rule.admit(est.stamp)
+        if verdict is Verdict.SAME and self.log.est_t:
+            self.log.est_poses[-1] = np.array(est.pose, dtype=float)
+        elif verdict.published:
             self.log.est_t.append(est.stamp)
             self.log.est_poses.append(np.array(est.pose, dtype=float))
 

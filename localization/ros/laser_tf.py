@@ -113,3 +113,73 @@ class LaserPoseLookup:
             except Exception:  # noqa: BLE001
                 pass
             self.listener = None
+
+
+class LaserPoseSource:
+    """Where the node's laser pose comes from: TF (``base_frame`` -> the scan's frame) when it is
+    there; ``tf_timeout`` after the first scan without it, the ``laser_offset_*`` parameters. One
+    log line says which; a TF arriving later still replaces the parameters (then /tf is no longer
+    listened to). ``source``: None (not decided yet), "tf" or "parameters"."""
+
+    def __init__(self, node, params, localizer, watchdog):
+        self.node, self.params, self.localizer, self.watchdog = node, params, localizer, watchdog
+        self.log = node.get_logger()
+        self.source: str | None = None
+        self.lookup: LaserPoseLookup | None = None
+
+    def listen(self) -> None:
+        """Start looking the pose up in TF (``laser_pose_from_tf``), unless TF gave it already."""
+        p = self.params
+        if not p.laser_pose_from_tf or self.source == "tf" or self.lookup is not None:
+            return
+        own = p.odom_frame if p.publish_tf == "map_to_odom" else p.particle_filter_frame  # the node's own TF
+        try:
+            self.lookup = LaserPoseLookup(self.node, ignore_children={own})
+        except ImportError as exc:
+            self.log.warning(f"laser pose: TF not available ({exc}); using laser_offset_* parameters")
+            self.source = "parameters"
+
+    def close(self) -> None:
+        """Stop listening to TF (the node is deactivated)."""
+        if self.lookup is not None:
+            self.lookup.close()
+            self.lookup = None
+
+    @property
+    def pending(self) -> bool:
+        """Whether a scan should try to resolve the pose: not decided yet, or TF may still replace the parameters."""
+        return self.source is None or (self.source == "parameters" and self.lookup is not None)
+
+    def describe(self) -> str:
+        """The /diagnostics value."""
+        return {"tf": f"TF {self.params.base_frame} -> scan frame",
+                "parameters": "laser_offset_* parameters"}.get(self.source, "not decided yet")
+
+    def _use_parameters(self, why: str) -> None:
+        p = self.params
+        self.source = "parameters"
+        self.log.info(f"laser pose from the parameters laser_offset_x/y/yaw ({p.laser_offset_x:.3f}, "
+                      f"{p.laser_offset_y:.3f}, {p.laser_offset_yaw:.3f}){why}")
+
+    def resolve(self, frame_id: str, now: float) -> None:
+        """A scan in ``frame_id`` arrived at ``now`` (monotonic): decide, or keep waiting for TF."""
+        p = self.params
+        if self.lookup is None:
+            if self.source is None:
+                self._use_parameters(" (laser_pose_from_tf false)")
+            return
+        pose, why = self.lookup.lookup(p.base_frame, frame_id)
+        if pose is not None:
+            self.localizer.set_laser_offset(pose)
+            self.source = "tf"
+            self.watchdog.tf_ok()
+            self.log.info(f"laser pose from TF {p.base_frame} -> {frame_id}: ({pose[0]:.3f}, {pose[1]:.3f}, "
+                          f"{pose[2]:.3f})")
+            self.close()
+            return
+        first = self.watchdog.first_scan if self.watchdog.first_scan is not None else now
+        if self.source is None and now - first >= p.tf_timeout:
+            self._use_parameters(f": no TF {why}")
+            self.lookup.stop_dynamic()  # a laser mount is static: only /tf_static from now on
+            if self.lookup.has_data:  # TF is there but this lookup fails: a broken tree
+                self.watchdog.tf_failed(now, f"{why}; using laser_offset_*")

@@ -10,7 +10,7 @@ The same wiring as ``ParticleFilterNode`` (``node.LocalizationMixin``), mapped o
 transitions, so nav2's lifecycle_manager can start it beside map_server. Parameters are declared
 at construction (read-only, as in the plain node). Unconfigured it logs one line saying what it
 waits for; in every state (unconfigured, inactive, active, finalized) SIGINT and SIGTERM end it
-cleanly with exit code 0 (``node.spin_node``). Cleanup logs the run's statistics, and the next
+cleanly with exit code 0 (``cli.spin_node``). Cleanup logs the run's statistics, and the next
 configure starts them again from zero.
 """
 from __future__ import annotations
@@ -19,14 +19,13 @@ import sys
 
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
-from localization.core.parameters import NODE_NAME
-from localization.ros.node import LocalizationMixin, spin_node
+from localization.ros.cli import spin_node
+from localization.ros.node import LocalizationMixin
 
 
 class LifecycleParticleFilterNode(LocalizationMixin, LifecycleNode):
     def __init__(self, **node_kwargs):
-        super().__init__(NODE_NAME, **node_kwargs)
-        self._declare_or_destroy()
+        super().__init__(**node_kwargs)  # LocalizationMixin: every field, the parameters declared
         self.get_logger().info(f"unconfigured: waiting for the configure transition (a lifecycle manager, or "
                                f"'ros2 lifecycle set {self.get_fully_qualified_name()} configure')")
 
