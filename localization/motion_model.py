@@ -8,8 +8,8 @@ odometry)`` moves (N, 3) particles by ``[dx, dy, dθ]`` in the robot frame, with
 """
 from __future__ import annotations
 
-from localization.core.motion import MotionModel as _CoreMotionModel
-from localization.core.motion import MotionNoiseParams
+from localization.core.models.motion import MotionModel as _CoreMotionModel
+from localization.core.models.motion import MotionNoiseParams
 
 
 class MotionModel(_CoreMotionModel):

@@ -27,9 +27,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from localization.core.models.beam import BeamModel, BeamModelParams, beam_mixture_table
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
-from localization.core.sensors.beam import BeamModel, BeamModelParams, beam_mixture_table
 
 #: The course's parameters read from a node, with the course's values where the node has none.
 COURSE_NODE_PARAMETERS = {

@@ -114,7 +114,7 @@ def test_converge_time_is_when_the_error_stays_below():
 
 
 def test_status_counter_counts_the_holding_scans():
-    from localization.core.recovery import HOLDING, TRACKING
+    from localization.core.localizer.recovery import HOLDING, TRACKING
 
     class Loc:
         status = TRACKING

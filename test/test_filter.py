@@ -5,14 +5,14 @@ import pytest
 from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.geometry import compose, integrate_twist
 from localization.core.localizer import Localizer
-from localization.core.motion import MotionModel
+from localization.core.models.beam import BeamModel as SensorModel
+from localization.core.models.motion import MotionModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import ParameterError, Parameters
 from localization.core.paths import config_dir
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
-from localization.core.sensors.beam import BeamModel as SensorModel
 
 
 @pytest.fixture(scope="module")

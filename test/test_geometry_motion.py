@@ -13,7 +13,7 @@ from localization.core.geometry import (
     wrap_angle,
     yaw_to_quaternion,
 )
-from localization.core.motion import MotionModel
+from localization.core.models.motion import MotionModel
 
 
 def test_wrap_angle_range():

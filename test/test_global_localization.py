@@ -10,10 +10,10 @@ from localization.benchmarks import robustness as RB
 from localization.core.filter.global_init import ScanSeedParams, lattice_positions, seed_from_scan, subset_beams
 from localization.core.geometry import compose, wrap_angle
 from localization.core.localizer import Localizer
+from localization.core.models.beam import BeamModel
 from localization.core.occupancy_map import OccupancyMap, load_map
 from localization.core.parameters import ParameterError, Parameters
 from localization.core.raycast import ExactRayCaster
-from localization.core.sensors.beam import BeamModel
 from localization.sim import simulate
 
 
@@ -46,7 +46,7 @@ def test_seeds_concentrate_at_the_true_pose_and_keep_a_uniform_share(model_name)
     if model_name == "beam":
         model = BeamModel(ray_caster="exact", laser_offset=(0.0, 0.0, 0.0))
     else:
-        from localization.core.sensors.likelihood_field import LikelihoodFieldModel
+        from localization.core.models.likelihood_field import LikelihoodFieldModel
         model = LikelihoodFieldModel(laser_offset=(0.0, 0.0, 0.0))
     model.set_map(m)
     true = np.array([1.13, 1.71, 0.4])
@@ -74,7 +74,7 @@ def test_global_init_is_a_checked_parameter():
 
 @pytest.mark.parametrize("method", ["scan", "uniform"])
 def test_first_scan_seeds_only_with_global_init_scan(method, monkeypatch):
-    import localization.core.global_seeder as L
+    import localization.core.localizer.seeder as L
     calls = []
     monkeypatch.setattr(L, "seed_from_scan", lambda *a, **k: calls.append(1) or seed_from_scan(*a, **k))
     m = room_map()
@@ -116,7 +116,7 @@ def test_global_localization_in_the_long_corridor_within_seconds():
 
 def test_the_lattice_is_scored_with_the_scans_range_max():
     """seed_from_scan scores as a sensor update does: z_max from the scan's range_max (laser_max_range <= 0)."""
-    from localization.core.sensors.likelihood_field import LikelihoodFieldModel
+    from localization.core.models.likelihood_field import LikelihoodFieldModel
     m = room_map()
     model = LikelihoodFieldModel(laser_offset=(0.0, 0.0, 0.0), laser_max_range=-1.0, occupancy_map=m)
     true = np.array([1.13, 1.71, 0.4])

@@ -8,17 +8,17 @@ from helpers import corridor_map, wrap_sensor_updates
 
 from localization.benchmarks import robustness as RB
 from localization.core.filter.mcl import Estimate, MonteCarloLocalizer, SensorUpdateResult, Snapshot
-from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.localizer import Localizer
-from localization.core.motion import MotionModel
+from localization.core.localizer.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.core.localizer.recovery import Action, Decision, SwitchGlide, is_jump
+from localization.core.localizer.timeline import PoseEstimate
+from localization.core.models.beam import BeamModel as SensorModel
+from localization.core.models.motion import MotionModel
 from localization.core.occupancy_map import load_map
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.raycast.exact import ExactRayCaster
-from localization.core.recovery import Action, Decision, SwitchGlide, is_jump
 from localization.core.scan import ScanData
-from localization.core.sensors.beam import BeamModel as SensorModel
-from localization.core.timeline import PoseEstimate
 from localization.eval.datasets import trial_config
 from localization.eval.feed import Feeder
 from localization.sim import simulate

@@ -7,10 +7,10 @@ import pytest
 from helpers import corridor_map
 
 from localization.benchmarks.large_map import shift_to_tile, tiled_map
+from localization.core.models.beam import BeamModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.raycast import ExactRayCaster, LookupTableRayCaster, TiledLookupTableRayCaster, make_ray_caster
 from localization.core.raycast.tiled_table import chessboard_clearance, chessboard_clearance_numpy
-from localization.core.sensors.beam import BeamModel
 
 
 def small_tiled_map() -> OccupancyMap:

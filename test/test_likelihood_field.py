@@ -11,12 +11,12 @@ from helpers import corridor_map
 
 from localization.core.geometry import compose
 from localization.core.localizer import Localizer, build_filter
+from localization.core.models.beam import BeamModel
+from localization.core.models.likelihood_field import UNKNOWN_RANGE_MAX, LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import BY_NAME, Parameters
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData
-from localization.core.sensors.beam import BeamModel
-from localization.core.sensors.likelihood_field import UNKNOWN_RANGE_MAX, LikelihoodFieldModel, LikelihoodFieldParams
 
 HAND = dict(lf_z_hit=0.5, lf_z_rand=0.5, lf_sigma_hit=0.2, laser_likelihood_max_dist=2.55, laser_max_range=5.0,
             squash_factor=2.0, laser_offset=(0.0, 0.0, 0.0))  # 2.55 m / 255: quanta of exactly 1 cm
@@ -192,7 +192,7 @@ def test_params_defaults_come_from_the_table_and_build_filter_picks_the_model():
 def test_the_distance_field_is_banded_exactly():
     from scipy.ndimage import distance_transform_edt
 
-    import localization.core.sensors.likelihood_field as lf_module
+    import localization.core.models.likelihood_field as lf_module
     m = corridor_map()
     model = LikelihoodFieldModel(laser_likelihood_max_dist=0.7)
     whole = np.minimum(distance_transform_edt(~m.occupied) * m.resolution, 0.7)

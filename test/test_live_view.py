@@ -14,8 +14,8 @@ import websockets  # a [dev] dependency (requirements.txt)
 from helpers import corridor_map
 
 from localization.core.localizer import Localizer
+from localization.core.localizer.timeline import PoseEstimate
 from localization.core.scan import ScanData
-from localization.core.timeline import PoseEstimate
 from localization.ros.live_view import TOPICS, LiveView, LiveViewError
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]  # the SDK's current name, then the older one

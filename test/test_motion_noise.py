@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from localization.core import motion as motion_module
 from localization.core.geometry import compose, integrate_twist, wrap_angle
-from localization.core.motion import ROBOT_MODELS, MotionModel, MotionNoiseParams, robot_model
+from localization.core.models import motion as motion_module
+from localization.core.models.motion import ROBOT_MODELS, MotionModel, MotionNoiseParams, robot_model
 from localization.core.parameters import ParameterError, Parameters
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"

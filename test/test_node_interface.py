@@ -31,7 +31,7 @@ from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from localization.core import pose_store  # noqa: E402
 from localization.core.geometry import yaw_to_quaternion  # noqa: E402
-from localization.core.recovery import TRACKING  # noqa: E402
+from localization.core.localizer.recovery import TRACKING  # noqa: E402
 from localization.core.watchdog import ERROR, OK, WARN, ProblemLog, Watchdog  # noqa: E402
 from localization.ros.conversions import pose_from_msg  # noqa: E402
 from localization.ros.messages import diagnostic_array_msg  # noqa: E402

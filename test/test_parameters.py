@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from helpers import corridor_map
 
-from localization.core.health import HealthMonitor
 from localization.core.localizer import build_filter
-from localization.core.motion import MotionModel, MotionNoiseParams
+from localization.core.localizer.health import HealthMonitor
+from localization.core.models.beam import BeamModel as SensorModel
+from localization.core.models.beam import BeamModelParams
+from localization.core.models.motion import MotionModel, MotionNoiseParams
 from localization.core.parameters import BY_NAME, COURSE_DEFAULTS, ParameterError, Parameters, default
 from localization.core.raycast import LookupTableRayCaster
-from localization.core.sensors.beam import BeamModel as SensorModel
-from localization.core.sensors.beam import BeamModelParams
 
 STRUCTS = {BeamModelParams: "", MotionNoiseParams: "motion_"}
 

@@ -1,4 +1,4 @@
-"""The online range-scale estimate (core/range_scale.py): the per-scan least-squares ratio ŝ through a gate
+"""The online range-scale estimate (core/localizer/range_scale.py): the per-scan least-squares ratio ŝ through a gate
 that drops unmapped obstacles and glass, and the filtered, bounded scale the beam model uses."""
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ import pytest
 from helpers import corridor_map
 
 from localization.core.localizer import Localizer
-from localization.core.parameters import Parameters
-from localization.core.range_scale import (
+from localization.core.localizer.range_scale import (
     MAX_SPREAD_M,
     MIN_BEAMS,
     RangeScaleEstimator,
@@ -19,7 +18,8 @@ from localization.core.range_scale import (
     jacobian_poses,
     range_jacobian,
 )
-from localization.core.sensors.beam import BeamModel
+from localization.core.models.beam import BeamModel
+from localization.core.parameters import Parameters
 
 ORIGIN = np.zeros(3)  # the estimate handed to update() with ranges that do not depend on it
 

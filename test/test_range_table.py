@@ -15,18 +15,18 @@ import numpy as np
 import pytest
 from helpers import corridor_map
 
-from localization.core import motion as motion_module
 from localization.core import paths
 from localization.core.filter import mcl as mcl_module
 from localization.core.filter.mcl import MonteCarloLocalizer
-from localization.core.motion import MotionModel
+from localization.core.models import motion as motion_module
+from localization.core.models.beam import BeamModel as SensorModel
+from localization.core.models.motion import MotionModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import Parameters
 from localization.core.raycast import table_cache as table_cache_module
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.raycast.lookup_table import LookupTableRayCaster
 from localization.core.raycast.table_cache import cache_file_name
-from localization.core.sensors.beam import BeamModel as SensorModel
 
 ROOT = Path(__file__).resolve().parents[1]
 BEAMS_270 = np.linspace(-2.356, 2.356, 60)

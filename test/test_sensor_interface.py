@@ -1,4 +1,4 @@
-"""The sensor-model interface (``localization.core.sensors.SensorModel``): both models implement all of
+"""The sensor-model interface (``localization.core.models.sensor.SensorModel``): both models implement all of
 it, and the filter, global initialisation and the localizer use nothing else."""
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ from helpers import corridor_map
 from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.geometry import compose
 from localization.core.localizer import build_filter
-from localization.core.motion import MotionModel
+from localization.core.models.beam import BeamModel
+from localization.core.models.likelihood_field import LikelihoodFieldModel
+from localization.core.models.motion import MotionModel
+from localization.core.models.sensor import Preparation, SensorModel, resolve_max_range
 from localization.core.parameters import Parameters
 from localization.core.raycast import ExactRayCaster, TiledLookupTableRayCaster
-from localization.core.sensors import Preparation, SensorModel, resolve_max_range
-from localization.core.sensors.beam import BeamModel
-from localization.core.sensors.likelihood_field import LikelihoodFieldModel
 
 KINDS = ("beam", "likelihood_field")
 ANGLES = np.linspace(-2.0, 2.0, 41)

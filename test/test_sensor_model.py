@@ -4,10 +4,10 @@ import pytest
 from helpers import corridor_map
 
 from localization.core.geometry import compose
+from localization.core.models.beam import BeamModel as SensorModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.raycast.exact import ExactRayCaster
 from localization.core.scan import ScanData, downsample_scan
-from localization.core.sensors.beam import BeamModel as SensorModel
 
 
 def test_table_shape_and_columns_normalised():
@@ -313,7 +313,7 @@ def test_beam_skipping_applies_only_to_a_cloud_of_one_hypothesis(tmp_path, monke
     a beam only the right cluster explains would be too; nothing is skipped until the cloud is one."""
     from dataclasses import replace
 
-    from localization.core.sensors import skips_beams
+    from localization.core.models.sensor import skips_beams
     monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
     sm, particles, angles, _, window = _window_scene(do_beamskip=True)
     plain, _, _, _, _ = _window_scene()

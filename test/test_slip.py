@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import localize_recording
 
-from localization.core.motion import MotionModel
+from localization.core.models.motion import MotionModel
 from localization.core.odometry import OdometryBuffer, TwistData
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
@@ -79,7 +79,7 @@ def test_speed_changes_within_the_grip_do_not_slip_and_wheel_spin_slips_backward
 
 
 def test_a_history_restarted_after_a_clock_jump_does_not_spin_from_its_marker():
-    from localization.core.timeline import OdometryLimits, OdometryTimeline
+    from localization.core.localizer.timeline import OdometryLimits, OdometryTimeline
     tl = OdometryTimeline(OdometryLimits(max_acceleration=5.0))
     for t in np.arange(0.0, 1.0, 1.0 / RATE):
         assert tl.add(TwistData(float(t), 2.0, 0.0, 0.0)).accepted

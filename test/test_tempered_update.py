@@ -9,7 +9,7 @@ import pytest
 
 from localization.core.filter.mcl import MonteCarloLocalizer, _tempering_step, effective_sample_size
 from localization.core.localizer import Localizer
-from localization.core.motion import MotionModel
+from localization.core.models.motion import MotionModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters

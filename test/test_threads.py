@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
+from localization.core.models.beam import MIN_PARTICLES_PER_THREAD, BeamModel, kernel_threads
 from localization.core.occupancy_map import load_map
-from localization.core.sensors.beam import MIN_PARTICLES_PER_THREAD, BeamModel, kernel_threads
 
 
 @pytest.fixture(scope="module")

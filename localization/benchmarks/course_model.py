@@ -23,8 +23,8 @@ def measure(map_name: str = "stata_basement", reps: int = 30, seed: int = 0) -> 
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
     import numpy as np
 
+    from localization.core.models.beam import BeamModel as SensorModel  # what localization.sensor_model exports
     from localization.core.occupancy_map import load_map
-    from localization.core.sensors.beam import BeamModel as SensorModel  # what localization.sensor_model exports
 
     occupancy_map = load_map(map_name)
     rng = np.random.default_rng(seed)

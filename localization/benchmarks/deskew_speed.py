@@ -38,7 +38,7 @@ def bench_deskew(sensor_model, occupancy_map, exact, params, quick: bool, rng) -
     """Timings and accuracy (see the module docstring); ``sensor_model`` a BeamModel with its
     lookup-table caster set, ``exact`` an ``ExactRayCaster`` of the same map and range."""
     from localization.core.filter.mcl import MonteCarloLocalizer
-    from localization.core.motion import MotionModel
+    from localization.core.models.motion import MotionModel
     reps = 5 if quick else 30
     rows = []
     for n, b in ([(2000, 60)] if quick else WORKLOADS):
@@ -95,10 +95,10 @@ def format_deskew(r: dict) -> list[str]:
 
 
 def run(map_name: str = "stata_basement", quick: bool = False, seed: int = 0) -> dict:
+    from localization.core.models.beam import BeamModel, BeamModelParams
     from localization.core.occupancy_map import load_map
     from localization.core.parameters import Parameters
     from localization.core.raycast.exact import ExactRayCaster
-    from localization.core.sensors.beam import BeamModel, BeamModelParams
     params = Parameters(ray_caster="lookup_table", random_seed=seed)
     occupancy_map = load_map(map_name)
     model = BeamModel(BeamModelParams.from_parameters(params), occupancy_map=occupancy_map)

@@ -8,7 +8,7 @@ run, on top of the range table. So, before a localizer prepares its first map,
 ``ensure_compiled(params)`` checks numba's cache index of each kernel those parameters use; when
 one is missing (a fresh install, or changed source) it runs
 
-    python -m localization.core.compile_kernels '<parameters as JSON>'
+    python -m localization.core.localizer.compile_kernels '<parameters as JSON>'
 
 which builds a ``Localizer`` with the same parameters on a tiny synthetic map and runs one
 odometry and one scan through it (every kernel compiled with the very types the real run uses,
@@ -30,13 +30,14 @@ import time
 
 log = logging.getLogger(__name__)
 
-_MOTION = [("localization.core.motion", "_move_kernel"), ("localization.core.filter.resampling", "resample_kernel")]
+_MOTION = [("localization.core.models.motion", "_move_kernel"),
+           ("localization.core.filter.resampling", "resample_kernel")]
 _TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
           ("localization.core.raycast.kernels", "chessboard_kernel")]
-_BEAM = [("localization.core.sensors.beam", "_fused_kernel")]
-_LIKELIHOOD_FIELD = [("localization.core.sensors.likelihood_field", "_lf_kernel")]
-_BEAMSKIP = [("localization.core.sensors.likelihood_field", "_lf_beamskip_kernel"),
-             ("localization.core.sensors.likelihood_field", "_masked_sum")]
+_BEAM = [("localization.core.models.beam", "_fused_kernel")]
+_LIKELIHOOD_FIELD = [("localization.core.models.likelihood_field", "_lf_kernel")]
+_BEAMSKIP = [("localization.core.models.likelihood_field", "_lf_beamskip_kernel"),
+             ("localization.core.models.likelihood_field", "_masked_sum")]
 
 _checked: set = set()  # kernel sets already made sure of in this process
 
@@ -92,7 +93,7 @@ def ensure_compiled(params, logger=None) -> str:
     t0 = time.perf_counter()
     logger.info("compiling the filter's kernels into numba's cache (first start after an install or an "
                 "update; a separate process, so this one keeps only the compiled code) ...")
-    cmd = [sys.executable, "-m", "localization.core.compile_kernels", json.dumps(dict(params))]
+    cmd = [sys.executable, "-m", "localization.core.localizer.compile_kernels", json.dumps(dict(params))]
     try:
         with tempfile.TemporaryDirectory(prefix="localization-kernels-") as scratch:
             # the tiny map's range table goes to a scratch cache; the child compiles in-process itself

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from localization.core.health import AgreementScorer
 from localization.core.localizer import Localizer, PoseEstimate
+from localization.core.localizer.health import AgreementScorer
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.geometry import wrap_angle
-from localization.core.health import AGREEMENT_TOLERANCE_M, AgreementScorer  # noqa: F401 - re-exported
+from localization.core.localizer.health import AGREEMENT_TOLERANCE_M, AgreementScorer  # noqa: F401 - re-exported
 
 CONVERGENCE_THRESHOLD_M = 0.2
 FALSE_RECOVERY_M = 1.0  # m: an estimate this far from the truth is in another place

@@ -39,9 +39,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
-from localization.core.sensors import SensorModel
 
 
 @dataclass(frozen=True)

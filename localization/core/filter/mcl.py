@@ -30,9 +30,9 @@ import numpy as np
 
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
 from localization.core.geometry import circular_mean, compose, wrap_angle
-from localization.core.motion import MotionModel
+from localization.core.models.motion import MotionModel
+from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.sensors import SensorModel
 
 
 @dataclass

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from localization.bags import BagError, open_bag
-from localization.core.health import AgreementScorer
 from localization.core.localizer import Localizer
+from localization.core.localizer.health import AgreementScorer
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters

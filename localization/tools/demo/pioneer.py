@@ -20,7 +20,7 @@ class StatusCounter:
         self.holding = 0
 
     def __call__(self, scan, localizer) -> None:
-        from localization.core.recovery import HOLDING
+        from localization.core.localizer.recovery import HOLDING
         self.scans += 1
         self.holding += int(localizer.status == HOLDING)
 

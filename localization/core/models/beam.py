@@ -41,7 +41,7 @@ With the lookup-table caster (the default) one compiled pass per particle does i
 pose, table row, interpolated range, table index, log sum — with no (N, B) temporaries
 (``_fused_kernel``); ``log_likelihood_numpy`` is its numpy reference, asserted equal in the tests.
 
-Beam skipping (``do_beamskip``; the rule in ``localization.core.sensors``): a particle explains beam
+Beam skipping (``do_beamskip``; the rule in ``localization.core.models.sensor``): a particle explains beam
 b when |z_b − d_b| ≤ ``beam_skip_distance`` (both in table cells, z_b as scored above); beams that
 at most ``beam_skip_threshold`` of the particles explain are left out of every particle's sum. A
 return the map cannot have, e.g. through a window, is scored on the hit Gaussian's tail, where it
@@ -65,11 +65,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from localization.core.geometry import compose
-from localization.core.occupancy_map import OccupancyMap
-from localization.core.parameters import default
-from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
-from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
-from localization.core.sensors import (
+from localization.core.models.sensor import (
     LaserMount,
     Preparation,
     RangeProbe,
@@ -78,6 +74,10 @@ from localization.core.sensors import (
     skips_beams,
     sweep_offsets,
 )
+from localization.core.occupancy_map import OccupancyMap
+from localization.core.parameters import default
+from localization.core.raycast import TABLE_CASTERS, LookupTableRayCaster, RayCaster, make_ray_caster, tiled
+from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
 
 if HAVE_NUMBA:
     from numba import njit, prange
@@ -273,7 +273,7 @@ class BeamModel(LaserMount):
         return min(max(k, 1), self.z_max)
 
     def set_range_scale(self, scale: float) -> None:
-        """Use ``scale`` as lidar_scale_to_map_scale (an online estimate, ``core.range_scale``); the
+        """Use ``scale`` as lidar_scale_to_map_scale (an online estimate, ``core.localizer.range_scale``); the
         tables, which do not depend on it, are kept."""
         self.params = replace(self.params, lidar_scale_to_map_scale=float(scale))
 

@@ -55,9 +55,9 @@ import numpy as np
 
 from localization.core.filter.mcl import Estimate, Snapshot
 from localization.core.geometry import wrap_angle
-from localization.core.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.core.localizer.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.core.localizer.timeline import PoseEstimate
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.timeline import PoseEstimate
 
 COV_FLOOR = 1e-12  # m²: added to the published position covariance before inverting it (a point cloud)
 JUMP_SIGMAS = 3.0  # a tracking update's move beyond this many standard deviations of the published pose can jump

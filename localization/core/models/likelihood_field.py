@@ -61,10 +61,10 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from localization.core.models.sensor import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 from localization.core.raycast.kernels import HAVE_NUMBA
-from localization.core.sensors import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
 
 if HAVE_NUMBA:
     from numba import njit

@@ -23,7 +23,7 @@ fallback (``max_range``); ``resolve_max_range`` is that rule.
 expected ranges, tabulated. ``likelihood_field.LikelihoodFieldModel``: nav2_amcl's likelihood
 field (each beam's end point scored by its distance to the nearest occupied cell; no ray casting).
 Only the beam model casts ranges, so only it can learn the lidar-to-map range scale online
-(``supports_range_scale``; ``core.range_scale``); the likelihood field declares it does not.
+(``supports_range_scale``; ``core.localizer.range_scale``); the likelihood field declares it does not.
 The ``sensor_model`` parameter picks one (``localizer.build_filter``); docs/models.md compares them.
 
 Beam skipping (``do_beamskip``, nav2_amcl's rule, both models): a return from something the map does not
@@ -77,7 +77,7 @@ class Preparation:
 
 @dataclass(frozen=True)
 class RangeProbe:
-    """What learning the lidar-to-map range scale from one scan's beams needs (``core.range_scale``)."""
+    """What learning the lidar-to-map range scale from one scan's beams needs (``core.localizer.range_scale``)."""
 
     cast: Callable[[np.ndarray], np.ndarray]  # poses (k, 3) -> (k, B) the beams' ranges ray cast (map metres)
     z_max: float  # lidar metres: a return at or beyond it is no return

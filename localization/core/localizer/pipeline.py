@@ -28,15 +28,15 @@ import numpy as np
 
 from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.geometry import compose, integrate_twists, inverse
-from localization.core.global_seeder import GlobalSeeder
-from localization.core.initial_pose import InitialPose
+from localization.core.localizer.initial_pose import InitialPose
+from localization.core.localizer.policies import UpdatePolicy, UpdatePolicyParams
+from localization.core.localizer.range_scale import RangeScaleEstimator
+from localization.core.localizer.recovery import Action, Beams, Decision, Recovery, SwitchGlide, Update
+from localization.core.localizer.seeder import GlobalSeeder
+from localization.core.localizer.timeline import OdometryTimeline, PoseEstimate
+from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.policies import UpdatePolicy, UpdatePolicyParams
-from localization.core.range_scale import RangeScaleEstimator
-from localization.core.recovery import Action, Beams, Decision, Recovery, SwitchGlide, Update
 from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
-from localization.core.sensors import SensorModel
-from localization.core.timeline import OdometryTimeline, PoseEstimate
 
 SKIPPED = Decision(Action.SKIP)
 LEARNS = (Action.TRACK, Action.CONVERGE)  # the range scale is learnt from these updates (tracking)
@@ -229,7 +229,7 @@ class ScanPipeline:
 
     def _learn_range_scale(self, update: Update, estimate) -> None:
         """The range scale from a tracking update: its beams (deskewed as it deskewed them) against the
-        ranges ray cast at its estimate (``core.range_scale``)."""
+        ranges ray cast at its estimate (``core.localizer.range_scale``)."""
         beams = update.beams
         probe = self.model.range_probe(beams.angles, update.offsets, beams.range_max)
         if self.range_scale.update(beams.ranges, probe.cast, estimate.pose, beams.range_min, probe.z_max, probe.reach,

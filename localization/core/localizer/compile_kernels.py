@@ -2,7 +2,7 @@
 on a tiny synthetic map through one odometry and one scan, so every kernel it uses is compiled
 (with the very types the real run uses) into numba's on-disk cache, then exit.
 
-    python -m localization.core.compile_kernels '<parameters as JSON>'
+    python -m localization.core.localizer.compile_kernels '<parameters as JSON>'
 """
 from __future__ import annotations
 

@@ -35,20 +35,20 @@ import numpy as np
 from localization.core.compile_cache import ensure_compiled
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import MonteCarloLocalizer
-from localization.core.initial_pose import check_initial_pose
-from localization.core.motion import MotionModel, MotionNoiseParams
+from localization.core.localizer.initial_pose import check_initial_pose
+from localization.core.localizer.pipeline import ScanPipeline, Used
+from localization.core.localizer.policies import ScanQueue
+from localization.core.localizer.recovery import Action
+from localization.core.localizer.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
+from localization.core.models.beam import BeamModel, BeamModelParams
+from localization.core.models.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
+from localization.core.models.motion import MotionModel, MotionNoiseParams
+from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import MapError, OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
-from localization.core.pipeline import ScanPipeline, Used
-from localization.core.policies import ScanQueue
-from localization.core.recovery import Action
 from localization.core.scan import ScanData, scan_time
-from localization.core.sensors import SensorModel
-from localization.core.sensors.beam import BeamModel, BeamModelParams
-from localization.core.sensors.likelihood_field import LikelihoodFieldModel, LikelihoodFieldParams
 from localization.core.throttled_log import ThrottledLog
-from localization.core.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
 
 __all__ = ["Ignored", "Localizer", "PoseEstimate", "ScanResult", "build_filter", "build_sensor_model"]
 
@@ -215,7 +215,7 @@ class Localizer:
             self._pipeline.policy.force()
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
-        """(Re-)initialise the cloud around a pose (``core.initial_pose`` checks it); False: refused.
+        """(Re-)initialise the cloud around a pose (``core.localizer.initial_pose`` checks it); False: refused.
         While a new map is being prepared the pose is kept and applied on that map."""
         if self.map_pending and np.all(np.isfinite(np.asarray(pose, dtype=float))):
             self._held_pose = (pose, covariance, stamp)

@@ -58,7 +58,7 @@ class OdometryLimits:
 
     @classmethod
     def from_parameters(cls, p) -> "OdometryLimits":
-        from localization.core.motion import robot_model
+        from localization.core.models.motion import robot_model
         return cls(time_offset=p.odom_time_offset, speed_scale=p.odom_speed_scale,
                    yaw_rate_scale=p.odom_yaw_rate_scale, yaw_rate_bias=p.odom_yaw_rate_bias, max_gap=p.odom_max_gap,
                    max_speed=p.odom_max_speed, max_yaw_rate=p.odom_max_yaw_rate, extrapolation=p.scan_max_wait,

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.health import cloud_spread
+from localization.core.localizer.health import cloud_spread
 
 __all__ = ["GATE_FRACTION", "GATE_M", "MAX_SPREAD_M", "MIN_BEAMS", "MIN_BEAM_FRACTION", "RANGE_MARGIN_M",
            "RangeScaleEstimator", "estimate_scale", "fit_scale", "jacobian_poses", "range_jacobian"]
