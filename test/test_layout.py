@@ -1,6 +1,6 @@
 """The package's layers, read from its own source (ast): every import, at module level or inside a
-function, goes to the same package or a lower layer; there is no import circle; the core talks
-no ROS; and the linter passes."""
+function, goes to the same package or a lower layer, and inside the core to the same folder or a
+lower one; there is no import circle; the core talks no ROS; and the linter passes."""
 from __future__ import annotations
 
 import ast
@@ -14,6 +14,8 @@ PKG = ROOT / "localization"
 # lowest first; a module may import from its own package or from a layer with a lower rank
 LAYERS = {"core": 0, "ros": 1, "bags": 1, "sim": 2, "eval": 3, "tools": 4, "benchmarks": 4}
 FACADE_RANK = 5  # localization/*.py: the course's module names
+# the core's folders by role, lowest first ("base": the modules directly in core/: geometry, scan, maps, ...)
+CORE_LAYERS = {"base": 0, "raycast": 1, "matching": 1, "models": 2, "filter": 3, "localizer": 4}
 ROS_MODULES = ("rclpy", "tf2_ros", "builtin_interfaces", "rcl_interfaces", "rosidl_runtime_py", "launch")
 # the only modules that talk ROS (DDS): the node's package, the DDS player, the live latency benchmark
 ROS_ALLOWED = ("localization.ros.", "localization.tools.play", "localization.benchmarks.latency",
@@ -76,6 +78,28 @@ def test_every_import_goes_down_the_layers():
             if dst_rank >= src_rank:
                 bad.append(f"{src} -> {dst}")
     assert not bad, "imports against the layers: " + ", ".join(sorted(bad))
+
+
+def core_rank(name: str) -> tuple[str, int]:
+    parts = name.split(".")
+    folder = parts[2] if len(parts) >= 4 or (len(parts) == 3 and parts[2] in CORE_LAYERS) else "base"
+    return folder, CORE_LAYERS[folder]
+
+
+def test_core_folders_import_down_their_roles():
+    """Maps and ray casting, then the models, then the filter, then the localizer and its parts."""
+    folders = {p.name for p in (PKG / "core").iterdir() if (p / "__init__.py").exists()}
+    assert folders == set(CORE_LAYERS) - {"base"}, f"core folders without a role here: {folders}"
+    bad = []
+    for src, targets in graph().items():
+        if not src.startswith("localization.core"):
+            continue
+        src_folder, src_rank = core_rank(src)
+        for dst in targets:
+            dst_folder, dst_rank = core_rank(dst)
+            if dst.startswith("localization.core") and dst_folder != src_folder and dst_rank >= src_rank:
+                bad.append(f"{src} -> {dst}")
+    assert not bad, "core imports against its folders: " + ", ".join(sorted(bad))
 
 
 def test_no_import_circle():
