@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -95,7 +96,7 @@ class ScanPipeline:
         self.params, self.pf, self.model, self.timeline, self.warn = params, pf, model, timeline, warn
         self.policy = UpdatePolicy(UpdatePolicyParams.from_parameters(params))
         self.seeder = GlobalSeeder(params, log)
-        self.recovery = Recovery(params, lambda *scan: self.seeder.challenger(self.pf, *scan), warn)
+        self.recovery = Recovery(params, partial(self.seeder.challenger, pf), warn)
         self.glide = SwitchGlide(params.recovery_switch_step, params.recovery_switch_turn,
                                  params.recovery_switch_glide_max)
         self.range_scale = None  # RangeScaleEstimator (range_scale_estimation, a model that supports it)
