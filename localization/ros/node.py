@@ -227,12 +227,11 @@ class LocalizationMixin:
                                       f"frame {self.params.map_frame!r}")
             return
         stamp = self.stamps.remember(msg.header.stamp) if data.stamp > 0 else (self._last_data_stamp or 0.0)
-        if not self.localizer.set_initial_pose(data.pose, data.covariance, stamp):
-            return  # not finite: the Localizer said why
+        if not self.localizer.set_initial_pose(data.pose, data.covariance, stamp) or not self.localizer.ready:
+            return  # refused, or kept until a map arrives: the Localizer said so
         x, y, th = data.pose
         self.get_logger().info(f"initial pose ({x:.2f}, {y:.2f}, {th:.2f}): particles re-initialised")
-        if self.localizer.ready:
-            self.outputs.publish_particles(stamp)
+        self.outputs.publish_particles(stamp)
 
     @_counted("reinitialize_global")
     def on_reinitialize_global(self, request, response):

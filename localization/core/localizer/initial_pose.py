@@ -2,6 +2,9 @@
 
     pose        (x, y, θ) in the map frame; refused when not finite; off the map or in a wall it is
                 moved to the nearest free cell (with a warning)
+    no map yet  a finite pose waits for the map (``waits_for_map``): it is a pose in that map, so
+                whether it lies in free space, and where the nearest free cell is, is known only then;
+                it is then checked as one received after the map (the same outcome in either order)
     covariance  3×3 over (x, y, θ), used when ``use_initialpose_covariance`` and it is a usable spread:
                 finite, trace > 0, every entry ≤ MAX_INITIAL_VARIANCE; otherwise the independent
                 spread (initial_std_xy, initial_std_xy, initial_std_theta) with a warning
@@ -28,6 +31,18 @@ class InitialPose:
 def usable_covariance(cov) -> bool:
     """A 3×3 initial-pose covariance that can spread a cloud (finite, not zero, not absurd)."""
     return bool(np.all(np.isfinite(cov)) and np.trace(cov) > 0 and np.abs(cov).max() <= MAX_INITIAL_VARIANCE)
+
+
+def waits_for_map(pose, occupancy_map: OccupancyMap | None, map_pending: bool) -> str:
+    """Why an initial pose must wait for a map before it is checked ("" when it is checked now): no map
+    yet, or the map on its way is being prepared. A pose that is not finite never waits: it is refused."""
+    if not np.all(np.isfinite(np.asarray(pose, dtype=float))):
+        return ""
+    if map_pending:
+        return "until the map being prepared is ready (it is a pose in that map)"
+    if occupancy_map is None:
+        return "until a map arrives (it is a pose in that map: then checked against its free space)"
+    return ""
 
 
 def check_initial_pose(pose, covariance, occupancy_map: OccupancyMap | None, params,

@@ -35,7 +35,7 @@ import numpy as np
 from localization.core.compile_cache import ensure_compiled
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import MonteCarloLocalizer
-from localization.core.localizer.initial_pose import check_initial_pose
+from localization.core.localizer.initial_pose import check_initial_pose, waits_for_map
 from localization.core.localizer.pipeline import ScanPipeline, Used
 from localization.core.localizer.policies import ScanQueue
 from localization.core.localizer.recovery import Action
@@ -216,10 +216,11 @@ class Localizer:
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
         """(Re-)initialise the cloud around a pose (``core.localizer.initial_pose`` checks it); False: refused.
-        While a new map is being prepared the pose is kept and applied on that map."""
-        if self.map_pending and np.all(np.isfinite(np.asarray(pose, dtype=float))):
+        Before a map, or while a new one is being prepared, the pose is kept and applied on that map."""
+        wait = waits_for_map(pose, self.map, self.map_pending)
+        if wait:
             self._held_pose = (pose, covariance, stamp)
-            self.log.info("initial pose kept until the map being prepared is ready (it is a pose in that map)")
+            self.log.info(f"initial pose kept {wait}")
             return True
         init = check_initial_pose(pose, covariance, self.map, self.params, self.log)
         if init is None:
