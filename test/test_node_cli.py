@@ -174,6 +174,21 @@ def test_unknown_parameter_is_an_error_in_the_node_and_in_replay(tmp_path):
         Parameters.from_yaml(typo)
 
 
+def test_a_yaml_syntax_error_in_the_parameter_file_names_its_line_and_column(tmp_path):
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("particle_filter:\n  ros__parameters:\n    num_particles: 300\n    odom_topic: /odom: x\n")
+    proc = _node("--ros-args", "--params-file", str(bad))
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{bad}:4:22: mapping values are not allowed here" in lines[0], proc.stderr
+    # an indentation error: the line of the problem, and the context it was in
+    from localization.ros.cli import check_params_file
+    bad.write_text("particle_filter:\n  ros__parameters:\n    num_particles: 300\n   odom_topic: /odom\n")
+    problem = check_params_file(bad, [])
+    assert problem.startswith(f"parameter file is not valid YAML: {bad}:4:4: expected <block end>"), problem
+    assert "(while parsing a block mapping from line 2)" in problem
+
+
 def test_parameter_file_by_bare_name_and_the_hint_for_a_missing_one():
     from localization.core.paths import config_dir, resolve_params_path
     assert resolve_params_path("real_params.yaml") == config_dir() / "real_params.yaml"

@@ -174,7 +174,7 @@ def test_initial_pose_from_parameters_without_initialpose(runner, drive):
     assert covs[-1].pose.covariance[0] > 0
 
 
-def test_laser_pose_from_tf_static(runner, drive):
+def test_laser_pose_from_tf_static(runner, drive, capfd):
     r = runner()
     qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     pub = r.probe.create_publisher(TFMessage, "/tf_static", qos)
@@ -191,6 +191,9 @@ def test_laser_pose_from_tf_static(runner, drive):
     r.play(drive.until(0.2))
     assert np.allclose(r.node.localizer.laser_offset, [0.31, 0.02, 0.05], atol=1e-6)
     assert r.node.diagnostic_status().values["laser pose"].startswith("TF")
+    pub.publish(TFMessage(transforms=[t]))  # the same mount again, and more scans: no second line
+    r.play(drive.until(0.4)[len(drive.until(0.2)):])
+    assert capfd.readouterr().err.count("laser pose from TF base_link -> laser") == 1
 
 
 def test_scans_that_disagree_with_the_map_are_a_diagnostics_warning(runner, drive):
@@ -229,9 +232,10 @@ def play_past_tf_timeout(r, drive):
     r.play(events[5:])
 
 
-def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive):
+def test_laser_pose_falls_back_to_parameters_without_tf(runner, drive, capfd):
     r = runner(tf_timeout=0.2, laser_offset_x=0.2, range_scale_estimation=False)  # the scale as configured
     play_past_tf_timeout(r, drive)
+    assert capfd.readouterr().err.count("laser pose from the parameters") == 1  # once, not once per scan
     assert np.allclose(r.node.localizer.laser_offset, [0.2, 0.0, 0.0])
     assert r.node.diagnostic_status().values["laser pose"] == "laser_offset_* parameters"
     assert r.node.diagnostic_status().values["range scale"] == "1.0000 (lidar_scale_to_map_scale)"

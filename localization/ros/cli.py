@@ -69,6 +69,17 @@ def _node_identity(ros: list[str]) -> tuple[str, str]:
     return namespace, name
 
 
+def yaml_error(path, exc) -> str:
+    """A YAML error as ``file:line:column: problem (context)``, as compilers write it (line and column from 1)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+    context, context_mark = getattr(exc, "context", None), getattr(exc, "context_mark", None)
+    if context and context_mark is not None:
+        context += f" from line {context_mark.line + 1}"
+    return f"{where}: {problem}" + (f" ({context})" if context else "")
+
+
 def check_params_file(path, ros: list[str]) -> str:
     """Why a parameter file cannot configure this node ("" when it can): unreadable, or no section
     that applies to the node (a misspelt node name would leave every parameter at its default)."""
@@ -77,7 +88,9 @@ def check_params_file(path, ros: list[str]) -> str:
     from localization.core.parameters import node_sections, section_error
     try:
         doc = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as exc:
+    except yaml.YAMLError as exc:
+        return f"parameter file is not valid YAML: {yaml_error(path, exc)}"
+    except OSError as exc:
         return f"cannot read parameter file {path}: {exc}".splitlines()[0]
     keys = list(doc) if isinstance(doc, dict) else []
     namespace, name = _node_identity(ros)
