@@ -34,7 +34,7 @@ _MOTION = [("localization.core.models.motion", "_move_kernel"),
            ("localization.core.filter.resampling", "resample_kernel")]
 _TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
           ("localization.core.raycast.kernels", "chessboard_kernel")]
-_BEAM = [("localization.core.models.beam", "_fused_kernel")]
+_BEAM = [("localization.core.models.beam_kernels", "fused_kernel")]
 _LIKELIHOOD_FIELD = [("localization.core.models.likelihood_field", "_lf_kernel")]
 _BEAMSKIP = [("localization.core.models.likelihood_field", "_lf_beamskip_kernel"),
              ("localization.core.models.likelihood_field", "_masked_sum")]

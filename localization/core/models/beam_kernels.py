@@ -1,0 +1,110 @@
+"""The beam model's compiled pass (``BeamModel.log_likelihood`` with the lookup-table caster): per particle
+the laser pose, each beam's interpolated range from the table (``raycast.kernels``), its table column
+and the sum of the log table rows, with no (N, B) temporaries. ``BeamModel.log_likelihood_numpy`` is its
+numpy reference, asserted equal in the tests.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
+
+if HAVE_NUMBA:
+    from numba import njit, prange
+
+    from localization.core.raycast.kernels import beam_ranges, locate, refine
+
+
+if HAVE_NUMBA:
+    @njit(cache=True, nogil=True)
+    def fused_rows(lo, hi, particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw,
+                    occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
+                    bins_per_metre, z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
+        """For particles lo … hi − 1: out[i] = Σ_b log p(z_b | d_b(particle i)) / squash_factor; −inf for
+        particles off the map or in an occupied cell. ``log_rows[b]`` is the log table row of the measured z_b (columns
+        0 … z_max); (beam_du[b], beam_dv[b]): beam b's origin offset from the laser, laser frame, map
+        cells; ``bins_per_metre``: 1 / table_resolution. ``cols_out`` (N, B), unless it has no rows:
+        also each particle's table column d_b (rows of impossible particles are left unwritten)."""
+        write = cols_out.shape[0] > 0
+        n_bins = table.shape[1]
+        h, w = occupied.shape
+        n_beams = beam_f.size
+        fs = np.empty(n_beams)
+        q0s = np.empty(n_beams)
+        q1s = np.empty(n_beams)
+        cells = np.empty(n_beams)
+        blind = 0.0  # a laser outside free space sees 0 on every beam
+        for b in range(n_beams):
+            blind += log_rows[b, 0]
+        for i in range(lo, hi):
+            px = particles[i, 0]
+            py = particles[i, 1]
+            pth = particles[i, 2]
+            dx = px - map_ox
+            dy = py - map_oy
+            gx = (map_c * dx + map_s * dy) / resolution
+            gy = (-map_s * dx + map_c * dy) / resolution
+            if not (gx >= 0.0 and gx < w and gy >= 0.0 and gy < h):  # off the map (or NaN)
+                out[i] = -np.inf
+                continue
+            if occupied[int(math.floor(gy)), int(math.floor(gx))]:
+                out[i] = -np.inf
+                continue
+            c = math.cos(pth)
+            s = math.sin(pth)
+            cell, f0, u, v, sx, sy, sc, ss = locate(px + c * off_x - s * off_y, py + s * off_x + c * off_y,
+                                                    pth + off_th, map_ox, map_oy, map_c, map_s, resolution,
+                                                    map_yaw, index, n_bins)
+            if cell < 0:
+                out[i] = blind / squash_factor
+                if write:
+                    for b in range(n_beams):
+                        cols_out[i, b] = 0
+                continue
+            beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
+                        q1s, cells)
+            if consts[C_REFINE] > 0.0:
+                refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_du, beam_dv, beam_c, beam_s, consts, q0s, q1s,
+                       cells)
+            total = 0.0
+            for b in range(n_beams):
+                d = (cells[b] * resolution) * bins_per_metre  # map metres, then table cells as BeamModel.to_cells
+                d = z_max if d > z_max else d
+                col = int(np.rint(d))
+                total += log_rows[b, col]
+                if write:
+                    cols_out[i, b] = col
+            out[i] = total / squash_factor
+
+    @njit(cache=True, nogil=True)
+    def fused_kernel(particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw, occupied,
+                      index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv, bins_per_metre,
+                      z_max, log_rows, squash_factor, out, cols_out):  # pragma: no cover - compiled
+        """The fused pass over every particle (``fused_rows``), on this thread."""
+        fused_rows(0, particles.shape[0], particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution,
+                    map_yaw, occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv,
+                    bins_per_metre, z_max, log_rows, squash_factor, out, cols_out)
+
+    @njit(cache=True, nogil=True, parallel=True)
+    def fused_kernel_parallel(n_blocks, particles, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution,
+                               map_yaw, occupied, index, table, blocking, beam_f, beam_c, beam_s, consts, mode,
+                               beam_du, beam_dv, bins_per_metre, z_max, log_rows, squash_factor, out,
+                               cols_out):  # pragma: no cover - compiled
+        """The same pass with the particles cut into ``n_blocks`` contiguous blocks run on numba's threads:
+        each particle's sum is computed exactly as on one thread (the same weights, bit for bit)."""
+        n = particles.shape[0]
+        for blk in prange(n_blocks):
+            fused_rows(blk * n // n_blocks, (blk + 1) * n // n_blocks, particles, off_x, off_y, off_th, map_ox,
+                        map_oy, map_c, map_s, resolution, map_yaw, occupied, index, table, blocking, beam_f, beam_c,
+                        beam_s, consts, mode, beam_du, beam_dv, bins_per_metre, z_max, log_rows, squash_factor, out,
+                        cols_out)
+
+    # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
+    from localization.core.compile_cache import drop_if_older
+    from localization.core.raycast import kernels as _kernels
+    for _kernel in (fused_rows, fused_kernel, fused_kernel_parallel):
+        drop_if_older(_kernel, _kernels.__file__)
+else:  # pragma: no cover
+    fused_kernel = fused_kernel_parallel = None
