@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from localization.core.localizer import Localizer, PoseEstimate
+from localization.core.localizer import Localizer, PoseEstimate, ScanResult
 from localization.core.localizer.health import AgreementScorer
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
@@ -174,13 +174,14 @@ class Feeder:
         self._publish(est)
         return est
 
-    def scan(self, scan: ScanData) -> PoseEstimate | None:
+    def scan(self, scan: ScanData) -> ScanResult:
+        """What the Localizer did with the scan (ignored and why, or the scans it used)."""
         self.log.counts["scans"] += 1
         self._pending.append((self.localizer.scan_time(scan), scan))
-        est, dt = self._timed(self.localizer.on_scan, scan)
+        result, dt = self._timed(self.localizer.on_scan, scan)
         self._corrections(dt)
         self._score_until(self._odometry_until)  # a scan odometry had already reached is used at once
-        return est
+        return result
 
     def initial_pose(self, pose, covariance, stamp: float) -> None:
         self.log.counts["initial_poses"] += 1
