@@ -32,9 +32,9 @@ def compile_kernels(params) -> None:
                   update_min_distance=0.0, update_min_angle=0.0)
     loc = Localizer(Parameters(params))
     occupancy_map = tiny_map()
-    # prepared here, so set_map does not ask ensure_compiled again; ensure_compiled points the table
-    # cache of this process at a scratch folder
-    loc.set_map(occupancy_map, loc._pf.sensor_model.prepare(occupancy_map))
+    # the sensor model's own preparation (ensure_compiled points this process's table cache at a scratch
+    # folder and leaves the compiling to it)
+    loc.set_map(occupancy_map, loc.prepare_ray_caster(occupancy_map))
     loc.set_initial_pose(np.array([1.0, 1.0, 0.0]), stamp=0.0)
     loc.on_odometry(TwistData(0.0, 0.5, 0.0, 0.1))
     loc.on_odometry(TwistData(0.02, 0.5, 0.0, 0.1))
