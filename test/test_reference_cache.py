@@ -158,3 +158,27 @@ def test_the_code_version_covers_the_yardstick_and_what_it_imports():
         assert name in got, (name, got)
     assert "numpy" not in got
     assert len(C.code_version()) == 40 and C.code_version() == C.code_version()
+
+
+def test_the_cache_keeps_the_most_recently_used_entries(cache_dir, monkeypatch):
+    import os
+    spy = _Spy(_tiny_track())
+    monkeypatch.setattr(track, "_build", spy)
+    monkeypatch.setattr(C, "MAX_ENTRIES", 2)
+    m = OccupancyMap(np.zeros((20, 20), dtype=np.int8), 0.05, (0.0, 0.0, 0.0))
+    odo = (np.arange(10) * 0.02, np.zeros((10, 3)))
+
+    def build(scale):
+        return track.build_reference(_scans(), m, (0.1, 0.0, 0.0), odo, range_scale=scale)
+    build(1.0)
+    build(0.99)
+    for i, entry in enumerate(sorted(cache_dir.glob("*.npz"), key=lambda e: e.stat().st_mtime)):
+        os.utime(entry, (1e9 + i, 1e9 + i))  # distinct times, 1.0's entry the older
+    build(1.0)  # a hit: now the most recently used
+    assert spy.calls == 2
+    build(0.98)  # a third entry: 0.99's, the least recently used, goes
+    assert len(list(cache_dir.glob("*.npz"))) == 2
+    build(1.0)
+    assert spy.calls == 3
+    build(0.99)
+    assert spy.calls == 4

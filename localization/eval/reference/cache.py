@@ -13,14 +13,17 @@ key a digest of:
   included (``code_version``), so a change to the method never serves an old track.
 
 An entry that cannot be read is computed again (one log line); one that cannot be written is
-reported (one log line) and the track returned all the same.
+reported (one log line) and the track returned all the same. The folder keeps the MAX_ENTRIES most
+recently used entries (a hit refreshes an entry's time; storing one removes the oldest beyond).
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
 import json
+import os
 import re
 from pathlib import Path
 
@@ -34,6 +37,7 @@ WHOLE_FILE_BYTES = 64 << 20  # files up to this size are hashed whole ...
 SAMPLE_BYTES, SAMPLES = 1 << 20, 16  # ... larger ones by their size, first and last MiB and 16 MiB between
 ARRAYS = ("t", "poses", "laser_poses", "matched", "information", "covariance", "std_along", "std_cross", "score",
           "usable", "accepted", "constrained", "good", "fit")
+MAX_ENTRIES = 256  # entries kept (a few hundred kB each), the least recently used removed first
 ROOT_MODULE = "localization.eval.reference.track"  # the computation (not its errors, plots or command line)
 
 
@@ -198,6 +202,8 @@ def cached(key: str | None, compute, log=None) -> ReferenceTrack:
     if path.is_file():
         try:
             ref = load(path)
+            with contextlib.suppress(OSError):
+                os.utime(path)  # recently used
             say(f"reference track from the cache ({path})")
             return ref
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -205,6 +211,19 @@ def cached(key: str | None, compute, log=None) -> ReferenceTrack:
     ref = compute()
     try:
         save(path, ref)
+        prune(path.parent)
     except OSError as exc:
         say(f"reference track not cached: cannot write {path} ({exc})")
     return ref
+
+
+def prune(folder: Path, keep: int | None = None) -> None:
+    """Remove all but the ``keep`` (MAX_ENTRIES) most recently used entries of ``folder``."""
+    keep = MAX_ENTRIES if keep is None else keep
+    entries = []
+    for entry in folder.glob("*.npz"):
+        with contextlib.suppress(OSError):  # another process may remove it meanwhile
+            entries.append((entry.stat().st_mtime, entry))
+    for _, entry in sorted(entries, reverse=True)[keep:]:
+        with contextlib.suppress(OSError):
+            entry.unlink()
