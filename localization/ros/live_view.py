@@ -306,4 +306,18 @@ class LiveView:
         self.close()
 
 
-__all__ = ["DEFAULT_HOST", "DEFAULT_PORT", "LiveView", "LiveViewError", "TOPICS"]
+def start_live_view(params, log) -> LiveView | None:
+    """The node's live view when ``foxglove_port`` >= 0 (one line says where, or why not), else None."""
+    if params.foxglove_port < 0:
+        return None
+    try:
+        view = LiveView(port=params.foxglove_port, host=params.foxglove_host, map_frame=params.map_frame,
+                        base_frame=params.particle_filter_frame)
+    except LiveViewError as exc:
+        log.error(f"live view not started: {exc}")
+        return None
+    log.info(f"live view: Foxglove WebSocket on ws://{view.host}:{view.port}")
+    return view
+
+
+__all__ = ["DEFAULT_HOST", "DEFAULT_PORT", "LiveView", "LiveViewError", "TOPICS", "start_live_view"]

@@ -12,22 +12,22 @@ threads), ``_activate`` (subscriptions, timers), ``_deactivate``, ``_cleanup``.
 maps them onto configure/activate/deactivate/cleanup. Each callback converts its message, makes one
 call into the core and publishes. The parts with a job of their own:
 
-    map_install.MapInstaller       a map checked, prepared (off-thread when the sensor model says it
-                                   is slow), installed
-    outputs.Outputs                publishers; one publish rule per stream (core.publish_rule)
-    laser_tf.LaserPoseSource       the laser pose from TF, else the laser_offset_* parameters
-    latency.LatencyBook            each scan's way through the node, for /diagnostics
-    diagnostics.Diagnostics        /diagnostics and the log lines of its problems
-    pose_persistence               the start pose (parameters or persisted) and the persisted estimate
-    cli                            the command line, spin, SIGINT/SIGTERM
+    map_install         a map checked, prepared (off-thread when the sensor model says it is slow), installed
+    outputs             publishers; one publish rule per stream (core.publish_rule)
+    laser_tf            the laser pose from TF, else the laser_offset_* parameters
+    latency             each scan's way through the node, for /diagnostics
+    diagnostics         /diagnostics and the log lines of its problems
+    pose_persistence    the start pose (parameters or persisted) and the persisted estimate
+    runtime_parameters  parameters set while the node runs: checked, prepared, applied between updates
+    cli                 the command line, spin, SIGINT/SIGTERM
 
 Threading: a SingleThreadedExecutor runs every callback. The scan callback runs the sensor update
 and publishes (as nav2_amcl's laser callback does), or the odometry callback that reaches a newer
 scan's time does (the localizer keeps the scan until then). With ``sensor_update_thread`` the scan
 callback only queues the message for a sensor-update thread (``scan_worker``), which publishes the
-corrections, so odometry poses keep flowing during an update. Why not rclpy's
-MultiThreadedExecutor, and the measured costs: docs/node.md.
-Every output is stamped with the time it describes, on the scan clock (``outputs``, docs/node.md).
+corrections, so odometry poses keep flowing during an update (why not rclpy's MultiThreadedExecutor,
+and the measured costs: docs/node.md). Every output is stamped with the time it describes, on the
+scan clock (``outputs``, docs/node.md).
 """
 from __future__ import annotations
 
@@ -57,11 +57,13 @@ from localization.ros.conversions import (
 from localization.ros.diagnostics import Diagnostics
 from localization.ros.laser_tf import LaserPoseSource
 from localization.ros.latency import LatencyBook
+from localization.ros.live_view import start_live_view
 from localization.ros.logging_bridge import stdlib_logger
 from localization.ros.map_install import MapInstaller
 from localization.ros.outputs import DIAGNOSTICS_TOPIC, HEALTH_TOPIC, ODOM_POSE_TOPIC, PARTICLES_TOPIC, Outputs
 from localization.ros.parameters import MAP_QOS, ODOM_QOS, QOS_OVERRIDES, SCAN_QOS, declare_parameters
 from localization.ros.pose_persistence import PosePersistence, initial_pose_at_start
+from localization.ros.runtime_parameters import RuntimeParameters
 from localization.ros.scan_worker import ScanQueueWorker
 from localization.ros.stamps import StampBook
 
@@ -101,12 +103,14 @@ class LocalizationMixin:
         self._configured = False
         self._last_odom = None  # (t'_k, its odometry pose or None) of the newest odometry message
         self._last_data_stamp = None  # s, scan clock: the newest input's time
+        self.runtime: RuntimeParameters | None = None  # parameters set while the node runs
         try:
             self.params = declare_parameters(self)
         except ParameterError as exc:
             self.get_logger().fatal(str(exc))
             self.destroy_node()
             raise
+        self.runtime = RuntimeParameters(self)
 
     # ------------------------------------------------------------------ lifecycle steps
     def _configure(self) -> None:
@@ -129,24 +133,9 @@ class LocalizationMixin:
             self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global),
             self.create_service(Empty, "request_nomotion_update", self.on_request_nomotion_update),
         ]
-        self.live_view = self._start_live_view()
+        self.live_view = start_live_view(p, log)  # foxglove_port >= 0
         initial_pose_at_start(p, self.localizer, log)
         self._configured = True
-
-    def _start_live_view(self):
-        """The Foxglove live view when foxglove_port >= 0 (a browser-only way to watch the filter)."""
-        p = self.params
-        if p.foxglove_port < 0:
-            return None
-        from localization.ros.live_view import LiveView, LiveViewError
-        try:
-            view = LiveView(port=p.foxglove_port, host=p.foxglove_host, map_frame=p.map_frame,
-                            base_frame=p.particle_filter_frame)
-        except LiveViewError as exc:
-            self.get_logger().error(f"live view not started: {exc}")
-            return None
-        self.get_logger().info(f"live view: Foxglove WebSocket on ws://{view.host}:{view.port}")
-        return view
 
     def _activate(self) -> None:
         p = self.params
@@ -201,6 +190,8 @@ class LocalizationMixin:
             self._deactivate()
         if self._configured:
             self._cleanup()
+        if self.runtime is not None:
+            self.runtime.stop()
 
     # ------------------------------------------------------------------ inputs
     def on_map(self, msg: OccupancyGrid) -> None:
@@ -313,7 +304,9 @@ class LocalizationMixin:
 
     # ------------------------------------------------------------------ timers
     def diagnostic_status(self):
-        return self.diagnostics.status(self.localizer, self.laser.describe(), self.scan_worker)
+        status = self.diagnostics.status(self.localizer, self.laser.describe(), self.scan_worker)
+        status.values["parameters changed"] = self.runtime.last
+        return status
 
     def publish_diagnostics(self) -> None:
         self.diagnostics.publish(self.diagnostic_status(), self.outputs.publish_diagnostics)

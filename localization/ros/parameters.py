@@ -1,5 +1,6 @@
-"""The node's ROS parameters and QoS: every entry of the core's parameter table declared
-read-only with its description and rule; validation errors collected into one message."""
+"""The node's ROS parameters and QoS: every entry of the core's parameter table declared with its
+description and rule, read-only (with the reason) unless it may change while the node runs
+(``core.runtime_parameters``); validation errors collected into one message."""
 from __future__ import annotations
 
 from rcl_interfaces.msg import ParameterDescriptor
@@ -9,6 +10,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
 from localization.core.parameters import BY_NAME, PARAMETERS, ParameterError, Parameters, coerce_number
+from localization.core.runtime_parameters import read_only_reason
 
 MAP_QOS = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -32,8 +34,11 @@ def declare_parameters(node: Node) -> Parameters:
     overrides = getattr(node, "_parameter_overrides", {}) or {}
     values, problems = {}, []
     for p in PARAMETERS:
-        desc = ParameterDescriptor(description=f"{p.description} [{p.rule}]" if p.rule else p.description,
-                                   read_only=True)
+        reason = read_only_reason(p.name)  # "" for a parameter that may change while the node runs
+        text = f"{p.description} [{p.rule}]" if p.rule else p.description
+        desc = ParameterDescriptor(description=text + (f" (read-only while the node runs: {reason})" if reason else
+                                                       " (can change while the node runs)"),
+                                   read_only=bool(reason))
         try:
             values[p.name] = node.declare_parameter(p.name, p.default, desc).value
         except InvalidParameterTypeException:

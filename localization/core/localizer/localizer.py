@@ -38,6 +38,7 @@ from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.localizer.initial_pose import check_initial_pose, waits_for_map
 from localization.core.localizer.pipeline import ScanPipeline, Used
 from localization.core.localizer.policies import ScanQueue
+from localization.core.localizer.reconfigure import apply_change, prepare_change
 from localization.core.localizer.recovery import Action
 from localization.core.localizer.timeline import OdometryLimits, OdometryTimeline, Outbox, PoseEstimate
 from localization.core.models.beam import BeamModel, BeamModelParams
@@ -213,6 +214,16 @@ class Localizer:
         """The next scan updates the filter even without motion (nav2's request_nomotion_update)."""
         with self._lock:
             self._pipeline.policy.force()
+
+    def prepare_change(self, change):
+        """The slow part of a runtime parameter change (``core.runtime_parameters``), safe on any thread."""
+        return prepare_change(change, self.map, self.log)
+
+    def reconfigure(self, change, prepared=None) -> None:
+        """Apply a checked runtime parameter change between two updates (``core.localizer.reconfigure``);
+        ``prepared``: what ``prepare_change`` made for it."""
+        with self._lock:
+            apply_change(change, self.params, self._pf, self._model, self.map, prepared)
 
     def set_initial_pose(self, pose, covariance=None, stamp: float = 0.0) -> bool:
         """(Re-)initialise the cloud around a pose (``core.localizer.initial_pose`` checks it); False: refused.
