@@ -133,6 +133,8 @@ def test_the_plan_leaves_out_inert_parts_and_carries_fold_switch_and_seed():
     grip = next(j for j in rss if j.label == "bag1" and j.mechanism == "grip" and j.seed == 1)
     assert dict(grip.overrides) == {"odom_time_offset": 0.13, "odom_max_acceleration": 0.0, "random_seed": 1}
     assert len([j for j in jobs if j.group == "perturbed"]) == 7 * 2 * 2
+    assert [(j.label, j.mechanism, j.seed) for j in rss[:4]] == [("bag1", "baseline", 0), ("bag1", "grip", 0),
+                                                                  ("bag2", "baseline", 0), ("bag2", "grip", 0)]
     picked, _ = J.plan(["rss", "global"], [], [0], {}, 10, {"rss": ["bag2"], "global": J.spread_starts(10, 2)})
     assert [(j.group, j.label) for j in picked] == [("rss", "bag2"), ("global", "0"), ("global", "5")]
     assert J.spread_starts(10, None) == [str(r) for r in range(10)] and J.spread_starts(10, 3) == ["0", "3", "6"]

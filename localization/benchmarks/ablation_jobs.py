@@ -116,17 +116,22 @@ def spread_starts(runs: int, starts: int | None) -> list:
 
 
 def plan(groups: list, mechanisms: list, seeds: list, folds: dict, runs: int, pick: dict | None = None) -> tuple:
-    """(jobs to run, (group, mechanism) -> why it is not run); ``pick``: group -> the labels to run (else all)."""
+    """(jobs to run, (group, mechanism) -> why it is not run); ``pick``: group -> the labels to run (else all).
+    Within a part the rows alternate (seed, then bag or run, then row), so that a change of the machine's load
+    during the run falls on every row alike (the cost columns are wall-clock times)."""
     pick = pick or {}
     jobs, skipped = [], {}
     for group in groups:
+        rows = []
         for mechanism in ["baseline", *mechanisms]:
             why = inert(group, mechanism)
-            if why is not None:
+            if why is None:
+                rows.append(mechanism)
+            else:
                 skipped[(group, mechanism)] = why
-                continue
-            for seed in seeds:
-                for label in pick.get(group) or labels(group, runs):
+        for seed in seeds:
+            for label in pick.get(group) or labels(group, runs):
+                for mechanism in rows:
                     switch = {} if mechanism == "baseline" else dict(MECHANISMS[mechanism].overrides)
                     over = {**folds.get(label, {}), **switch, "random_seed": seed}
                     jobs.append(Job(group, label, mechanism, seed, tuple(over.items()), runs))
