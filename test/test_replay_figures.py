@@ -107,3 +107,25 @@ def test_summary_table_gives_the_reason_and_the_parts():
     assert "50 = 0 scored + 2 matched but not confident + 48 unmatched" in parts
     text = summary_table(_metrics(reference_unscored_reason="the yardstick could not start: too few scans"))
     assert "n/a: the yardstick could not start: too few scans" in text
+
+
+def test_published_errors_are_reference_metrics_own_figures():
+    from localization.eval.reference import ReferenceTrack, reference_metrics
+    from localization.eval.replay import published_errors
+    rng = np.random.default_rng(3)
+    k = 200
+    t = np.arange(k) * 0.025
+    poses = np.column_stack([0.5 * t, 0.1 * np.sin(t), 0.05 * t])
+    cov = np.tile(np.eye(3) * 1e-4, (k, 1, 1))
+    good = rng.random(k) < 0.8
+    ref = ReferenceTrack(t=t, poses=poses, laser_poses=poses, matched=poses, information=cov, covariance=cov,
+                         std_along=np.full(k, 0.01), std_cross=np.full(k, 0.01), score=rng.random(k),
+                         usable=good | (rng.random(k) < 0.5), accepted=good, constrained=np.ones((k, 5), dtype=bool),
+                         good=good, counts={"scans": k})
+    est_t = np.arange(0.01, 5.0, 0.02)  # the published poses: their own times, off the scans'
+    est = np.column_stack([0.5 * est_t + 0.01, 0.1 * np.sin(est_t) - 0.02, 0.05 * est_t])
+    full = reference_metrics(ref, est_t, est)
+    mine = published_errors(ref, est_t, est)
+    assert mine["published_reference_error_m"] == full["reference_error_m"]
+    assert mine["published_along_track_error_m"] == full["along_track_error_m"]
+    assert mine["published_reference_error_m"]["median"] > 0

@@ -48,6 +48,7 @@ from localization.eval.replay.outputs import (
     compute_metrics,
     jump_text,
     partition_text,
+    published_errors,
     summary_table,
     unscored_reason,
     write_outputs,
@@ -75,5 +76,5 @@ from localization.eval.replay.run import (
 
 __all__ = ["LASER_SCAN", "ODOMETRY", "POSE_COV", "POSE_STAMPED", "PROG", "TF_MESSAGE", "TRUTH_TYPES", "ReplayError",
            "ReplayOptions", "ReplayResult", "bag_events", "bag_label", "check_topics", "compute_metrics",
-           "default_out_dir", "jump_text", "laser_mount_params", "load_map", "partition_text", "run_replay",
-           "summary_table", "tf_odometry", "unscored_reason", "write_outputs"]
+           "default_out_dir", "jump_text", "laser_mount_params", "load_map", "partition_text", "published_errors",
+           "run_replay", "summary_table", "tf_odometry", "unscored_reason", "write_outputs"]
