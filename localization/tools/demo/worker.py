@@ -22,7 +22,7 @@ from localization.tools.demo.pioneer import StatusCounter, pioneer_metrics
 PROG = "localization-demo"
 PACKAGE = Path(__file__).resolve().parents[2]
 #: the code a calibration's values depend on (a change anywhere here computes them again)
-CALIBRATION_CODE = ("core", "eval/calibration.py", "eval/reference", "eval/datasets.py", "bags")
+CALIBRATION_CODE = ("core", "eval/calibration", "eval/reference", "eval/datasets.py", "bags")
 
 
 def say(label: str, line: str) -> None:
