@@ -70,6 +70,7 @@ class FeedLog:
     scan_poses: list = field(default_factory=list)  # (3,) x̂(t_k): the estimate at that scan's time
     agreement_t: list = field(default_factory=list)  # s, scan clock: each scored scan's time t_k
     agreement: list = field(default_factory=list)  # scan–map agreement of x̂(t_k) (with a scorer; finite only)
+    costs: list = field(default_factory=list)  # core.cost.UpdateCost of each scan through the pipeline, in order
     filter_time: float = 0.0  # s inside the Localizer (all calls)
     init_t: float | None = None  # s, stamp of the first initialisation (Feeder.run)
     initial_pose: np.ndarray | None = None  # (3,) the first initial pose (None: global localization or none)
@@ -149,6 +150,7 @@ class Feeder:
 
     def _corrections(self, dt: float) -> None:
         """The sensor updates this call made (a scan may have waited for this odometry)."""
+        self.log.costs.extend(self.localizer.take_costs())
         for est in self.localizer.take_corrections():
             self.log.sensor_times.append(dt)
             self.log.counts["sensor_updates"] += 1

@@ -28,11 +28,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from localization.core.cost import WEIGH, CostMeter
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
 from localization.core.geometry import circular_mean, compose, wrap_angle
 from localization.core.models.motion import MotionModel
 from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import OccupancyMap
+
+# numpy passes over the N particles (or weights) of each step, counted from the code (``core.cost``)
+MOTION_PASSES = 2  # per odometry piece: the noise draw, the compiled move
+COMPOSE_PASSES = 14  # geometry.compose of the cloud: cos, sin, the products and sums, the wrap
+NORMALISE_PASSES = 6  # add, max, subtract, exp, sum, subtract
+COVARIANCE_PASSES = 15  # two dots, the circular mean (4), the difference, its wrap (6), the weighting, the product
+ESTIMATE_PASSES = 5 + 2 + 4 + COVARIANCE_PASSES  # the weights (5), the mean x, y, θ, the covariance
+TEMPERING_PASSES = 2 + 30 * 5  # a stage's β: the bisection's effective sample sizes
+KLD_RESAMPLE_PASSES = 20  # the KLD sampler's draw and bins, the copy, the roughening
 
 
 @dataclass
@@ -78,6 +88,7 @@ class MonteCarloLocalizer:
         self.kld = kld  # a filter.kld.KLDSampler: each resampling picks the particle count (None: fixed)
         self.kld_hold = False  # True: keep the current count even with a KLD sampler (a global spread)
         self.beams_used: tuple[int | None, int] | None = None  # the last sensor update's (used, offered) beams
+        self.cost = CostMeter()  # beams cast and passes over the cloud (``core.cost``; the localizer shares one)
 
     # ------------------------------------------------------------------ initialisation
     def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
@@ -121,6 +132,7 @@ class MonteCarloLocalizer:
 
     def snapshot(self) -> Snapshot:
         """The particles and their log weights (copies), for ``restore``."""
+        self.cost.sweep("snapshot", 2)
         return Snapshot(self.particles.copy(), self.log_weights.copy())
 
     def restore(self, snapshot: Snapshot) -> None:
@@ -146,10 +158,12 @@ class MonteCarloLocalizer:
         """Move every particle by the robot-frame odometry delta [dx, dy, dθ] (``slip``, ``slip_var``: the
         mean (m) and variance (m²) of how much farther forward the robot went; ``MotionModel.evaluate``)."""
         self.motion_model.evaluate(self.particles, odometry, out=self.particles, slip=slip, slip_var=slip_var)
+        self.cost.sweep("motion", MOTION_PASSES)
 
     def shift(self, delta) -> None:
         """Move every particle by the robot-frame delta exactly (no noise), e.g. back in time."""
         self.particles = compose(self.particles, np.asarray(delta, dtype=float).reshape(3))
+        self.cost.sweep("shift", COMPOSE_PASSES)
 
     def sensor_update(self, ranges, angles, offsets=None, range_max=None) -> SensorUpdateResult:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
@@ -172,11 +186,13 @@ class MonteCarloLocalizer:
         n_target = ess_target * self.num_particles
         left, evidence = 1.0, 0.0
         for stage in range(max_stages):
-            log_lik = self._log_likelihood(ranges, angles, offsets, range_max)
+            log_lik = self._log_likelihood(ranges, angles, offsets, range_max, WEIGH if stage == 0 else "tempered")
             possible = np.isfinite(log_lik)
             last = stage == max_stages - 1
-            beta = left if last or not possible.any() else _tempering_step(self.log_weights, log_lik, possible,
-                                                                           left, n_target)
+            beta = left
+            if not last and possible.any():
+                beta = _tempering_step(self.log_weights, log_lik, possible, left, n_target)
+                self.cost.sweep("tempered", TEMPERING_PASSES)
             step_ll = self._weigh(np.where(possible, beta * log_lik, -np.inf))
             if step_ll is None:
                 if stage == 0:
@@ -189,10 +205,13 @@ class MonteCarloLocalizer:
             self._resample_regularised(np.exp(self.log_weights))
         return self._resample_if_due(evidence)
 
-    def _log_likelihood(self, ranges, angles, offsets, range_max) -> np.ndarray:
-        """The sensor model's log p(z | particle); records the (used, offered) beams of the update."""
+    def _log_likelihood(self, ranges, angles, offsets, range_max, name: str = WEIGH) -> np.ndarray:
+        """The sensor model's log p(z | particle); records the (used, offered) beams of the update and
+        counts its N × B beams as ``name`` (the cost's ``weigh``, or an extra)."""
         log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
                                                    range_max=range_max)
+        self.cost.cast(name, len(self.particles) * int(np.size(ranges)))
+        self.cost.sweep(WEIGH)
         # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
         self.beams_used = (self.sensor_model.last_beams_used, int(np.size(ranges)))
         return log_lik
@@ -202,6 +221,7 @@ class MonteCarloLocalizer:
         weighted-mean factor), or None with the weights unchanged when every particle gets weight 0."""
         combined = self.log_weights + log_factor
         peak = combined.max()
+        self.cost.sweep("normalise", NORMALISE_PASSES)
         if not np.isfinite(peak):
             return None
         norm = float(peak + np.log(np.exp(combined - peak).sum()))
@@ -212,6 +232,7 @@ class MonteCarloLocalizer:
         """Resample when the ESS is below ``resample_ess_fraction`` · N (always at 1.0)."""
         weights = np.exp(self.log_weights)
         ess = float(1.0 / np.dot(weights, weights))
+        self.cost.sweep("ess", 2)  # exp, dot
         resampled = ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0
         if resampled:
             self.resample(weights)
@@ -222,6 +243,7 @@ class MonteCarloLocalizer:
         covariance before resampling, θ wrapped; h the Gaussian kernel's optimal bandwidth for d = 3)."""
         n = self.num_particles
         cov = weighted_covariance(self.particles, weights)
+        self.cost.sweep("tempered", COVARIANCE_PASSES + 12)  # the covariance, the draw and its jitter
         h = (4.0 / (n * 5.0)) ** (1.0 / 7.0)
         # a floor of the ordinary roughening keeps Σ positive definite when the cloud is degenerate
         chol = np.linalg.cholesky(cov + np.diag(np.maximum(self.roughening, 1e-6) ** 2))
@@ -236,6 +258,7 @@ class MonteCarloLocalizer:
         if weights is None:
             weights = self.weights
         if self.kld is not None and not self.kld_hold:  # adaptive count: KLD draws the indices and their number
+            self.cost.sweep("resample", KLD_RESAMPLE_PASSES)
             draw = self.kld.resample(self.particles, weights, self.rng)
             self.num_particles = draw.indices.size
             self._take_roughened(self.particles[draw.indices])
@@ -249,9 +272,11 @@ class MonteCarloLocalizer:
             out = np.empty((n, 3))
             resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
                              self.roughening, out)
+            self.cost.sweep("resample", 3)  # the noise draw, the compiled walk, the weights reset
             self.particles = out
             self._reset_weights()
             return
+        self.cost.sweep("resample", 12)  # cumsum, searchsorted, the copy, the roughening, the weights reset
         self._take_roughened(self.particles[systematic_indices(weights, n, self.rng.random())])
 
     def _take_roughened(self, drawn: np.ndarray) -> None:
@@ -269,6 +294,7 @@ class MonteCarloLocalizer:
 
     def estimate(self) -> Estimate:
         """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped)."""
+        self.cost.sweep("estimate", ESTIMATE_PASSES)
         return estimate_of(self.particles, self.log_weights)
 
 

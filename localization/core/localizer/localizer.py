@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.compile_cache import ensure_compiled
+from localization.core.cost import UpdateCost
 from localization.core.filter.kld import KLDSampler
 from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.localizer.initial_pose import check_initial_pose, waits_for_map
@@ -93,6 +94,11 @@ class ScanResult:
         """The newest sensor-corrected estimate the call made (None: none)."""
         return next((u.estimate for u in reversed(self.used) if u.estimate is not None), None)
 
+    @property
+    def cost(self) -> UpdateCost | None:
+        """What the newest scan the call used cost the core (``core.cost``; None: none used)."""
+        return self.used[-1].cost if self.used else None
+
 
 def scan_problem(scan: ScanData) -> tuple[str, str]:
     """(key, message) of what makes a scan unusable; ("", "") when it is usable."""
@@ -129,6 +135,8 @@ class Localizer:
         self._held_pose = None  # (pose, covariance, stamp): an initial pose waiting for the map on its way
         self._corrections = Outbox()  # sensor-corrected estimates not yet taken (its own lock)
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
+        self._costs = Outbox()  # the cost of each scan through the pipeline (``core.cost``), not yet taken
+        self.take_costs = self._costs.take  # those since the last call, oldest first (UpdateCost each)
         self._carried: PoseEstimate | None = None  # the last pose returned on odometry
 
     has_map = property(lambda self: self.map is not None)
@@ -336,6 +344,7 @@ class Localizer:
     def _run_locked(self, scan: ScanData, t_s: float) -> Used:
         """One scan through the pipeline; its corrected estimate is collected for ``take_corrections``."""
         used = self._pipeline.run(scan, t_s)
+        self._costs.put(used.cost)
         if used.action is Action.RESPREAD:  # the scans waiting describe the cloud before it
             self._queue.clear()
         if used.estimate is not None:

@@ -21,12 +21,13 @@ A scan that is not due, or has no valid beam, skips to ``apply`` with ``Action.S
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import NamedTuple
 
 import numpy as np
 
+from localization.core.cost import NO_COST, UpdateCost
 from localization.core.filter.mcl import MonteCarloLocalizer
 from localization.core.geometry import compose, integrate_twists, inverse
 from localization.core.localizer.initial_pose import InitialPose
@@ -54,10 +55,12 @@ class Gate(NamedTuple):
 
 @dataclass(frozen=True)
 class Used:
-    """A scan the pipeline used: what was decided, and the corrected estimate it published (None: none)."""
+    """A scan the pipeline used: what was decided, the corrected estimate it published (None: none) and what
+    it cost (``core.cost``: beams cast, passes over the cloud)."""
 
     action: Action
     estimate: PoseEstimate | None = None
+    cost: UpdateCost = NO_COST
 
 
 def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, angle_step: int = 0):
@@ -97,6 +100,8 @@ class ScanPipeline:
         self.policy = UpdatePolicy(UpdatePolicyParams.from_parameters(params))
         self.seeder = GlobalSeeder(params, log)
         self.recovery = Recovery(params, partial(self.seeder.challenger, pf), warn)
+        self.cost = model.cost = self.recovery.cost = pf.cost  # one meter: beams cast, passes (``core.cost``)
+        self._weighed = (0, 0)  # (particles, beams) of this scan's sensor update (0, 0: none)
         self.glide = SwitchGlide(params.recovery_switch_step, params.recovery_switch_turn,
                                  params.recovery_switch_glide_max)
         self.range_scale = None  # RangeScaleEstimator (range_scale_estimation, a model that supports it)
@@ -116,7 +121,13 @@ class ScanPipeline:
 
     # ------------------------------------------------------------------ one scan
     def run(self, scan: ScanData, t_s: float) -> Used:
-        """One scan at its time t_s, once the odometry reaches it (module docstring)."""
+        """One scan at its time t_s, once the odometry reaches it (module docstring), with what it cost."""
+        self.cost.take()  # counts from outside a scan (a map's warm-up, an initialisation) are not this scan's
+        self._weighed = (0, 0)
+        used = self._run(scan, t_s)
+        return replace(used, cost=self.cost.take(*self._weighed))
+
+    def _run(self, scan: ScanData, t_s: float) -> Used:
         global_mode = self.pf.kld_hold  # a global spread, not yet converged
         judged = not global_mode and self.params.recovery_jump_glide > 0.0 and not self.glide.active
         self.move_to(t_s)  # move
@@ -182,6 +193,7 @@ class ScanPipeline:
         only), and its estimate; None: every particle impossible (the weights kept). The first update after
         an initial pose is tempered (``temper_next``, cleared once it succeeded)."""
         if not self.recovery.holding:
+            self._weighed = (self.pf.num_particles, int(np.size(beams.ranges)))
             if not self.temper_next:
                 ok = self.pf.sensor_update(beams.ranges, beams.angles, offsets, range_max=beams.range_max).ok
             else:
@@ -233,7 +245,11 @@ class ScanPipeline:
         ranges ray cast at its estimate (``core.localizer.range_scale``)."""
         beams = update.beams
         probe = self.model.range_probe(beams.angles, update.offsets, beams.range_max)
-        if self.range_scale.update(beams.ranges, probe.cast, estimate.pose, beams.range_min, probe.z_max, probe.reach,
+
+        def cast(poses):  # the probe's rays counted (``core.cost``: range_scale)
+            self.cost.cast("range_scale", len(poses) * beams.ranges.size)
+            return probe.cast(poses)
+        if self.range_scale.update(beams.ranges, cast, estimate.pose, beams.range_min, probe.z_max, probe.reach,
                                    estimate.covariance, probe.wall_depth):
             self.model.set_range_scale(self.range_scale.scale)
 

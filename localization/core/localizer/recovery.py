@@ -53,7 +53,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.filter.mcl import Estimate, Snapshot
+from localization.core.cost import CostMeter
+from localization.core.filter.mcl import ESTIMATE_PASSES, Estimate, Snapshot
 from localization.core.geometry import wrap_angle
 from localization.core.localizer.health import AgreementScorer, HealthMonitor, cloud_spread
 from localization.core.localizer.timeline import PoseEstimate
@@ -144,6 +145,7 @@ class Recovery:
         self._wins = 0  # updates in a row the challenger explained the scan clearly better
         self._won_distance = 0.0  # m travelled during those updates
         self._normal = math.nan  # the highest slow average agreement seen while tracking
+        self.cost = CostMeter()  # the agreement's beams (``core.cost``; the pipeline shares its meter)
 
     health = property(lambda self: self.monitor.health)
     status = property(lambda self: HOLDING if self.holding else TRACKING)
@@ -168,6 +170,7 @@ class Recovery:
 
     def score(self, pose, beams) -> float:
         """Scan–map agreement of a pose; ``beams`` = (ranges, angles, range_min, range_max)."""
+        self.cost.cast("agreement", np.size(beams[0]))
         return self._scorer.score(pose, *beams)
 
     # ------------------------------------------------------------------ the decision
@@ -185,6 +188,8 @@ class Recovery:
         if u.before is not None and is_jump(u.published, estimate.pose, p.recovery_jump_glide):
             undone = self._refuses(u.published.pose, estimate.pose, u.beams.scored)
             jumped = not undone
+            if undone:
+                self.cost.sweep("estimate", ESTIMATE_PASSES)
             estimate = u.before.estimate() if undone else estimate
         verdict = self._judge(estimate, u.beams.scored, u.global_mode)
         if verdict.message:

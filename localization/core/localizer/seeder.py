@@ -44,6 +44,7 @@ class GlobalSeeder:
         seeds = seed_from_scan(occupancy_map, pf.sensor_model, ranges, angles, pf.num_particles, pf.rng,
                                ScanSeedParams.from_parameters(self.params), range_max=range_max)
         pf.set_particles(seeds.poses)
+        pf.cost.cast("global_seed", seeds.lattice_poses * min(self.params.global_seed_beams, len(ranges)))
         self.log.info(f"global localization: {seeds.lattice_poses} lattice poses scored against the scan in "
                       f"{time.perf_counter() - t0:.2f} s; {len(seeds.poses)} particles drawn around the best "
                       f"{len(seeds.candidates)}")
@@ -64,5 +65,7 @@ class GlobalSeeder:
                                pf.rng, params, range_max=range_max)
         cloud = MonteCarloLocalizer(pf.motion_model, pf.sensor_model, len(seeds.poses), pf.resample_ess_fraction,
                                     pf.roughening, pf.rng)
+        cloud.cost = pf.cost.scoped("challenger")  # its beams and passes count as the challenger's (core.cost)
+        cloud.cost.cast("global_seed", seeds.lattice_poses * min(self.params.global_seed_beams, len(ranges)))
         cloud.set_particles(seeds.poses)
         return cloud

@@ -63,6 +63,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from localization.core.cost import CostMeter
 from localization.core.geometry import compose
 from localization.core.models.beam_kernels import fused_kernel, fused_kernel_parallel
 from localization.core.models.sensor import (
@@ -147,6 +148,10 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
     return np.divide(table, column_sums, out=np.zeros_like(table), where=column_sums > 0)
 
 
+SKIP_CHECK_PASSES = 6  # numpy passes of skips_beams over the cloud: isfinite, all, the selection, the std
+SKIPPED_SUM_PASSES = 8  # numpy passes of _skipped_sum over the (N, B) columns: copy, difference, abs, compare,
+# the votes, the used columns, the table gather, the sum
+
 MIN_PARTICLES_PER_THREAD = 256  # fewer particles per thread: the threads' start costs more than they save
 
 
@@ -184,6 +189,7 @@ class BeamModel(LaserMount):
         self.ray_caster: RayCaster | None = None
         self._tables: dict = {}  # z_max row k -> (table, log table) of rows/columns 0 … k
         self.last_beams_used: int | None = None  # beams used by the last evaluation (do_beamskip leaves some out)
+        self.cost = CostMeter()  # beam skipping's extra work (``core.cost``; a localizer shares its meter)
         self.precompute_sensor_model()
         if occupancy_map is not None:
             self.set_map(occupancy_map)
@@ -403,7 +409,7 @@ class BeamModel(LaserMount):
             angles = angles + offsets[:, 2]
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
-        skip = skips_beams(particles, p)
+        skip = self._skips(particles)
         cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
         args = (particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
                 1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
@@ -417,10 +423,17 @@ class BeamModel(LaserMount):
         self.last_beams_used = angles.size
         return out
 
+    def _skips(self, particles) -> bool:
+        """Whether beam skipping applies to ``particles`` (``sensor.skips_beams``; its passes counted)."""
+        if self.params.do_beamskip:
+            self.cost.sweep("beam_skip", SKIP_CHECK_PASSES)
+        return skips_beams(particles, self.params)
+
     def _skipped_sum(self, log_rows, z, cols, valid) -> np.ndarray:
         """Squashed log weights (N,) over the beams beam skipping uses (module docstring): ``log_rows`` (B, k + 1),
         ``z`` (B,) measured rows, ``cols`` (N, B) expected columns, ``valid`` (N,) particles that can see."""
         p = self.params
+        self.cost.cast("beam_skip", SKIPPED_SUM_PASSES * cols.size)
         seeing = cols[valid]
         agree = np.abs(seeing - z[None, :]) <= p.beam_skip_distance / p.table_resolution
         used = beam_mask(p, agree.sum(axis=0), int(valid.sum()))
@@ -436,7 +449,7 @@ class BeamModel(LaserMount):
         z = self.measured_to_cells(observation, k)
         d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
         bad = self.map.is_occupied_or_outside(particles[:, :2])
-        if skips_beams(particles, self.params):
+        if self._skips(particles):
             return self._skipped_sum(self.log_table(k)[z], z, d, ~bad)
         log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
         log_w[bad] = -np.inf

@@ -61,6 +61,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from localization.core.cost import CostMeter
 from localization.core.models.sensor import LaserMount, Preparation, beam_mask, resolve_max_range, skips_beams
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
@@ -128,6 +129,7 @@ class LikelihoodFieldModel(LaserMount):
         self._log_tables: dict = {}  # z_max -> (256,) ℓ[q]
         self.near_table = q * self.step < p.beam_skip_distance  # (256,) do_beamskip: end point near an obstacle
         self.last_beams_used: int | None = None  # beams used by the last evaluation (after max range / skipping)
+        self.cost = CostMeter()  # beam skipping's extra work (``core.cost``; a localizer shares its meter)
         if occupancy_map is not None:
             self.set_map(occupancy_map)
 
@@ -282,6 +284,8 @@ class LikelihoodFieldModel(LaserMount):
         args = (particles, float(off[0]), float(off[1]), float(off[2]), ox, oy, c, s, res, yaw, self.field,
                 log_table, local[:, 0].copy(), local[:, 1].copy())
         out = np.empty(n)
+        if self.params.do_beamskip:
+            self.cost.sweep("beam_skip", 6)  # skips_beams: isfinite, all, the selection, the std
         if not skips_beams(particles, self.params) or local.shape[0] == 0:
             _lf_kernel(*args, out)
             self.last_beams_used = local.shape[0]
@@ -292,6 +296,7 @@ class LikelihoodFieldModel(LaserMount):
             mask = beam_mask(self.params, votes, int(np.isfinite(out).sum()))
             self.last_beams_used = int(mask.sum())
             _masked_sum(per_beam, log_table, mask, out)
+            self.cost.cast("beam_skip", per_beam.size)  # the compiled sum over the used beams
         out[np.isfinite(out)] /= self.params.squash_factor
         return out
 

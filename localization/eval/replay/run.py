@@ -97,6 +97,7 @@ class ReplayResult:
     # a simulated perturbed world's truth in the world frame (WORLD_TRUTH_TOPIC; truth_* is the map frame's)
     world_truth_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     world_truth_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    costs: list = field(default_factory=list)  # core.cost.UpdateCost of each scan through the pipeline
 
     @property
     def has_truth(self) -> bool:
@@ -305,7 +306,7 @@ def run_replay(opts: ReplayOptions) -> ReplayResult:
         particles_t=np.asarray(log.particles_t, dtype=float), particles=np.asarray(log.particles, dtype=float),
         corrected_t=corrected_t, corrected_poses=corrected_poses, scan_t=scan_t, scan_poses=scan_poses,
         laser_source=laser_source, laser_offset=(params.laser_offset_x, params.laser_offset_y,
-                                                 params.laser_offset_yaw))
+                                                 params.laser_offset_yaw), costs=log.costs)
     if world_truth is not None and world_truth[1]:
         wt = np.asarray(world_truth[1], dtype=float)
         order = np.argsort(wt, kind="stable")
