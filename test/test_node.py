@@ -266,9 +266,11 @@ def block_sensor_updates(r, drive):
     return entered, release, [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
 
 
-def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
-    """With ``sensor_update_thread`` odometry poses keep flowing during a (blocked) sensor update."""
-    r = runner(sensor_update_thread=True)
+@pytest.mark.parametrize("overrides", [{}, {"sensor_update_thread": True}], ids=["default", "thread"])
+def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive, overrides):
+    """By default (``sensor_update_thread``) odometry poses keep flowing during a (blocked) sensor update."""
+    r = runner(**overrides)
+    assert r.node.scan_worker is not None
     entered, release, odoms, scans = block_sensor_updates(r, drive)
     try:
         for _, _, msg in odoms[:3]:  # odometry up to the scan's time: the scan is used when it arrives
@@ -294,10 +296,31 @@ def test_slow_sensor_update_does_not_block_pose_on_odometry(runner, drive):
     assert travelled > 0.8 * 2.0 * 0.95 * (odoms[13][0] - odoms[0][0]) * 1e-9
 
 
-def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
-    """By default the scan callback runs the sensor update: odometry arriving meanwhile waits in its
-    queue and is handled, in order and completely, right after the update."""
+def test_a_scan_waiting_for_odometry_is_run_when_the_odometry_arrives(runner, drive):
+    """On the sensor-update thread, a scan newer than the odometry is run as soon as the odometry reaches its
+    time (the odometry callback pokes the thread), not at the next scan."""
     r = runner()
+    start_localizing(r, drive)
+    events = drive.until(1.0)
+    odoms, scans = [e for e in events if e[1] == "odom"], [e for e in events if e[1] == "scan"]
+    scan_t, _, scan = scans[1]  # 25 ms: the odometry before it is at 23 ms, the next at 43 ms
+    for t, _, msg in odoms:
+        if t < scan_t:
+            r.send_odom(msg)
+    r.send_scan(scan)
+    assert h.wait_until(lambda: r.node.localizer.waiting_scans == 1, 5.0)
+    r.settle(0.2)
+    assert not r.probe.corrections_snapshot()  # it waits for odometry past its time
+    r.send_odom(next(msg for t, _, msg in odoms if t > scan_t))
+    assert h.wait_until(lambda: any(h.key(m.header.stamp) == h.ns_key(scan_t) for m in r.probe.corrections_snapshot()),
+                        5.0)
+    assert r.node.localizer.waiting_scans == 0
+
+
+def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
+    """With ``sensor_update_thread`` false the scan callback runs the sensor update: odometry arriving
+    meanwhile waits in its queue and is handled, in order and completely, right after the update."""
+    r = runner(sensor_update_thread=False)
     assert r.node.scan_worker is None
     entered, release, odoms, scans = block_sensor_updates(r, drive)
     for _, _, msg in odoms[:3]:  # odometry up to the scan's time: the scan is used when it arrives

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -111,36 +110,69 @@ def test_estimate_is_stamped_with_the_time_it_describes():
     assert off.on_scan(_scan(1.10, time_increment=1e-4)).estimate.stamp == pytest.approx(1.10)
 
 
-def test_odometry_during_a_slow_sensor_update_is_not_lost_and_does_not_wait():
+def test_odometry_during_a_blocked_sensor_update_is_not_lost_and_does_not_wait():
+    """A sensor update held on another thread: each odometry message still gets its pose at once, the anchor
+    carried through the whole history (the timeline's short lock, not the localizer's), and nothing is lost."""
     loc = _corridor_localizer()
-    x0 = loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0)).pose[0]
+    before = loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
     real_update = loc._pf.tempered_update  # the first update after the initial pose
-    started = threading.Event()
+    started, release = threading.Event(), threading.Event()
 
-    def slow_update(*args, **kwargs):
+    def blocked_update(*args, **kwargs):
         started.set()
-        time.sleep(0.3)
+        assert release.wait(10.0)
         return real_update(*args, **kwargs)
 
-    loc._pf.tempered_update = slow_update
+    loc._pf.tempered_update = blocked_update
     result = []
     worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0)).estimate))
     worker.start()
-    assert started.wait(5.0)
-    waits = []
-    for k in range(1, 6):  # 0.1 s of 1 m/s while the update runs
-        t0 = time.perf_counter()
-        est = loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))
-        waits.append(time.perf_counter() - t0)
-        assert est is not None and est.stamp == pytest.approx(1.0 + 0.02 * k)
-    worker.join()
-    assert max(waits) < 0.15  # odometry never waited for the scan
-    assert est.pose[0] == pytest.approx(x0 + 0.1, abs=0.03)  # the estimate carried the queued motion
+    try:
+        assert started.wait(5.0)
+        for k in range(1, 6):  # 0.1 s of 1 m/s while the update is held
+            est = loc.on_odometry(TwistData(1.0 + 0.02 * k, 1.0, 0.0, 0.0))
+            assert worker.is_alive() and not release.is_set()  # returned while the update still holds the lock
+            assert est is not None and est.stamp == pytest.approx(1.0 + 0.02 * k)
+            assert est.pose == pytest.approx(compose(before.pose, [0.02 * k, 0.0, 0.0]), abs=1e-9)
+            assert len(loc._inbox) == 0 and loc._timeline.latest == pytest.approx(1.0 + 0.02 * k)  # in the history
+    finally:
+        release.set()
+        worker.join()
     loc._pf.tempered_update = real_update
     (updated,) = result
     assert updated.stamp == 1.0
-    out = loc.on_odometry(TwistData(1.12, 1.0, 0.0, 0.0))  # the next call holding the lock applies all of it
-    assert out.pose == pytest.approx(compose(updated.pose, [0.12, 0.0, 0.0]), abs=1e-9)  # the update carried on
+    out = loc.on_odometry(TwistData(1.12, 1.0, 0.0, 0.0))  # the update's anchor carried through all of it
+    assert out.pose == pytest.approx(compose(updated.pose, [0.12, 0.0, 0.0]), abs=1e-9)
+
+
+def test_a_message_that_starts_a_new_history_waits_for_the_lock_holder():
+    """A stamp jump during a held sensor update: that message (and the ones behind it) waits for the lock."""
+    loc = _corridor_localizer()
+    loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
+    results = []
+    with loc._lock:  # as a sensor update holds it
+        assert loc.on_odometry(TwistData(1.02, 1.0, 0.0, 0.0)) is not None  # the history goes on: no wait
+        jump = threading.Thread(target=lambda: results.append(loc.on_odometry(TwistData(50.0, 1.0, 0.0, 0.0))))
+        jump.start()
+        jump.join(0.3)
+        assert jump.is_alive() and len(loc._inbox) == 1  # a clock jump: waits for the lock holder
+        assert loc._timeline.latest == pytest.approx(1.02)
+    jump.join(5.0)
+    assert not jump.is_alive() and len(loc._inbox) == 0
+    est = loc.on_odometry(TwistData(50.02, 1.0, 0.0, 0.0))
+    assert est is not None and est.stamp == pytest.approx(50.02)
+
+
+def test_scans_due_says_when_the_odometry_reached_a_waiting_scan():
+    loc = _corridor_localizer()
+    loc.on_odometry(TwistData(1.0, 1.0, 0.0, 0.0))
+    assert loc.on_scan(_scan(1.03)).used == ()  # waits for odometry past its time
+    assert not loc.scans_due
+    loc.on_odometry(TwistData(1.04, 1.0, 0.0, 0.0), run_scans=False)  # reaches it, leaves it to run_waiting
+    assert loc.scans_due and loc.waiting_scans == 1
+    loc.run_waiting()
+    assert not loc.scans_due and loc.waiting_scans == 0
+    assert [e.stamp for e in loc.take_corrections()][-1] == pytest.approx(1.03)
 
 
 def _run(rec, params: Parameters):

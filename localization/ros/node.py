@@ -21,13 +21,16 @@ call into the core and publishes. The parts with a job of their own:
     runtime_parameters  parameters set while the node runs: checked, prepared, applied between updates
     cli                 the command line, spin, SIGINT/SIGTERM
 
-Threading: a SingleThreadedExecutor runs every callback. The scan callback runs the sensor update
-and publishes (as nav2_amcl's laser callback does), or the odometry callback that reaches a newer
-scan's time does (the localizer keeps the scan until then). With ``sensor_update_thread`` the scan
-callback only queues the message for a sensor-update thread (``scan_worker``), which publishes the
-corrections, so odometry poses keep flowing during an update (why not rclpy's MultiThreadedExecutor,
-and the measured costs: docs/node.md). Every output is stamped with the time it describes, on the
-scan clock (``outputs``, docs/node.md).
+Threading: a SingleThreadedExecutor runs every callback. With ``sensor_update_thread`` (the default)
+the scan callback only queues the message for a sensor-update thread (``scan_worker``), which runs the
+sensor update and publishes the corrections, so the odometry callbacks never wait behind an update: the
+localizer carries each odometry pose under the timeline's own short lock while the update holds its
+lock. Scans that wait in the localizer for the odometry that reaches their time are run on that thread
+as soon as the odometry does (``poke``). Without it the scan callback runs the sensor update (as
+nav2_amcl's laser callback does), or the odometry callback that reaches a newer scan's time does, and
+odometry waits in its queue meanwhile (why not rclpy's MultiThreadedExecutor, and the measured costs:
+docs/node.md). Every output is stamped with the time it describes, on the scan clock (``outputs``,
+docs/node.md).
 """
 from __future__ import annotations
 
@@ -127,7 +130,7 @@ class LocalizationMixin:
         self.laser = LaserPoseSource(self, p, self.localizer, self.watchdog)
         self.persistence = PosePersistence(p, log)
         if p.sensor_update_thread:
-            self.scan_worker = ScanQueueWorker(self.process_scan, log.error)
+            self.scan_worker = ScanQueueWorker(self.process_scan, log.error, on_poke=self.run_released_scans)
         self.map_install = MapInstaller(p, self.localizer, self.watchdog, log, self.counts, self._on_map_installed)
         self._pf_services = [
             self.create_service(Empty, "~/reinitialize_global_localization", self.on_reinitialize_global),
@@ -261,6 +264,8 @@ class LocalizationMixin:
             self.outputs.publish_odom_pose(est, odom_pose)
         if self.scan_worker is None:  # with the sensor-update thread, that thread publishes the corrections
             self.outputs.publish_corrections()
+        elif self.localizer.scans_due:  # a scan waited for this odometry: the thread runs it now
+            self.scan_worker.poke()
 
     def on_scan(self, msg) -> None:
         """Subscription callback: the scan (serialized bytes, or a message) through the sensor update
@@ -301,6 +306,12 @@ class LocalizationMixin:
             self._last_data_stamp = scan.stamp
         self.outputs.publish_corrections()
         self.watchdog.scan_processed(time.monotonic())
+
+    def run_released_scans(self) -> None:
+        """The sensor-update thread: the scans the odometry has released since the last scan, and their
+        corrections published."""
+        self.localizer.run_waiting()
+        self.outputs.publish_corrections()
 
     # ------------------------------------------------------------------ timers
     def diagnostic_status(self):

@@ -17,9 +17,13 @@ publishes on /pf/pose/odom and TF); each sensor-corrected x̂(t_s) is collected 
 ``take_corrections`` (what the node publishes on /pf/pose when it is newer than the last one there).
 Both go forward in time: t'_k grows, and t_s grows because scans are used in order.
 
-Thread safety: one lock. Odometry that arrives while a sensor update holds it goes into an inbox
-(lock-free) and is added by the next call that holds the lock; meanwhile the pose returned is the
-last one carried on by the new twist alone, so odometry never waits for a slow scan.
+Thread safety: two locks. The localizer's lock is held by a sensor update (and every other change of the
+filter); the timeline has its own short one (``timeline.OdometryTimeline.lock``), held for one read or
+write of the odometry history and the anchor. Odometry that arrives while the localizer's lock is held
+goes into the timeline under the short lock alone, and the pose returned is the anchor (the last
+corrected estimate) carried through the whole history to its time: odometry never waits for a sensor
+update. Only a message that starts a new history (the first, or after a clock jump: the filter's times
+move with it) waits for the localizer's lock.
 """
 from __future__ import annotations
 
@@ -137,7 +141,6 @@ class Localizer:
         self.take_corrections = self._corrections.take  # those since the last call, oldest first
         self._costs = Outbox()  # the cost of each scan through the pipeline (``core.cost``), not yet taken
         self.take_costs = self._costs.take  # those since the last call, oldest first (UpdateCost each)
-        self._carried: PoseEstimate | None = None  # the last pose returned on odometry
 
     has_map = property(lambda self: self.map is not None)
     ready = property(lambda self: self.map is not None and self._pf.initialized)
@@ -271,19 +274,40 @@ class Localizer:
         """Add odometry; the corrected estimate carried to its time t'_k (``run_scans`` False: the scans
         it releases wait for ``run_waiting``, on a sensor-update thread)."""
         self._inbox.append(twist)
-        if not self._lock.acquire(blocking=False):  # a sensor update runs: carry the last pose by this twist
-            self._carried = self._timeline.limits.carry(self._carried, twist)
-            return self._carried
+        if not self._lock.acquire(blocking=False):  # a sensor update runs: the timeline's short lock only
+            taken, pose = self._odometry_during_update()
+            if taken:
+                return pose
+            self._lock.acquire()  # a message that starts a history (rare: the first, a clock jump) waits
         try:
             accepted = self._add_odometry_locked()
             if run_scans:
                 self._run_released_locked()
             if not self.ready:
                 self.warn("odom-not-ready", waiting(self, "odometry kept; no pose yet"), logging.INFO)
-            self._carried = self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
-            return self._carried
+            return self._timeline.pose_at(self._timeline.latest) if accepted and self.ready else None
         finally:
             self._lock.release()
+
+    def _odometry_during_update(self) -> tuple[bool, PoseEstimate | None]:
+        """While another call holds the localizer's lock: the odometry waiting in the inbox that continues the
+        history goes into the timeline (its short lock). (True, the anchor carried to the newest one, or None
+        before a pose), or (False, None) when a message the inbox still holds starts a new history (it needs
+        the localizer's lock: the filter's times move with it)."""
+        timeline = self._timeline
+        with timeline.lock:
+            while self._inbox and timeline.continues(self._inbox[0]):
+                timeline.add(self._inbox.popleft())
+            if self._inbox:
+                return False, None
+            return True, (timeline.pose_at(timeline.latest) if self.ready else None)
+
+    @property
+    def scans_due(self) -> bool:
+        """Scans wait that the odometry received reaches (``on_odometry(run_scans=False)`` left them for
+        ``run_waiting``); a hint read without the localizer's lock."""
+        latest = self._timeline.latest
+        return latest is not None and self._queue.due(latest)
 
     def run_waiting(self) -> None:
         """Use the scans the odometry received so far has released (the sensor-update thread's call)."""
@@ -292,17 +316,19 @@ class Localizer:
             self._run_released_locked()
 
     def _add_odometry_locked(self) -> bool:
-        """Odometry from the inbox into the timeline; was the last one accepted?"""
+        """Odometry from the inbox into the timeline (under its short lock too: odometry may arrive on another
+        thread meanwhile); was the last one accepted?"""
         accepted = False
-        while self._inbox:
-            verdict = self._timeline.add(self._inbox.popleft())
-            accepted = verdict.accepted
-            if not accepted:
-                self.warn(verdict.key, verdict.problem)
-            elif verdict.restart is not None and self._pipeline.t_filter is not None:  # a new history: the
-                self._pipeline.restart_clock(verdict.restart)  # filter's times move to its start
-        self._timeline.rebase_anchor()  # keep the history short
-        self._timeline.trim(self._pipeline.t_filter)
+        with self._timeline.lock:
+            while self._inbox:
+                verdict = self._timeline.add(self._inbox.popleft())
+                accepted = verdict.accepted
+                if not accepted:
+                    self.warn(verdict.key, verdict.problem)
+                elif verdict.restart is not None and self._pipeline.t_filter is not None:  # a new history: the
+                    self._pipeline.restart_clock(verdict.restart)  # filter's times move to its start
+            self._timeline.rebase_anchor()  # keep the history short
+            self._timeline.trim(self._pipeline.t_filter)
         return accepted
 
     def _run_released_locked(self) -> tuple[Used, ...]:

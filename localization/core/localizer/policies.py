@@ -110,6 +110,15 @@ class ScanQueue:
         self._items.append((float(t), scan))
         self._newest = max(self._newest, float(t))
 
+    def due(self, odometry_until: float) -> bool:
+        """Whether the oldest waiting scan may be used now, odometry known up to ``odometry_until``."""
+        try:
+            t = self._items[0][0]  # another thread may take it meanwhile
+        except IndexError:
+            return False
+        expired = max(self._newest, odometry_until) - t > self.max_wait or len(self._items) > self.size
+        return t <= odometry_until or expired
+
     def release(self, odometry_until: float | None) -> list[Released]:
         """The scans that may be used now, oldest first, given odometry known up to ``odometry_until``
         (scan clock; None: no odometry at all, nothing to wait for)."""

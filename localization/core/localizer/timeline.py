@@ -19,10 +19,17 @@ describes. The pose at any time t is the anchor carried through the odometry,
 which is what the node publishes on each odometry message (t = t'_k) and what replay scores at a
 scan's time. Messages are checked here: non-finite or absurd values are ignored, and a stamp going
 backwards or a gap longer than ``odom_max_gap`` starts a new history (the motion across the jump is
-lost; one bad stamp between good ones is skipped). Not thread safe: the localizer holds its lock.
+lost; one bad stamp between good ones is skipped).
+
+Thread safety: every method holds the timeline's own short lock (``lock``, re-entrant), so odometry may
+be added and the pose at its time read on one thread while a sensor update, on another, reads the
+history at its scan's time and sets the anchor. Only ``add`` of a message that ``continues`` the
+history is meant for that thread (a message that starts a new history waits for the localizer's
+lock: the filter's times move with it).
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -30,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.geometry import compose, integrate_twist
+from localization.core.geometry import compose
 from localization.core.odometry import OdometryBuffer, TwistData
 
 
@@ -66,17 +73,6 @@ class OdometryLimits:
                    max_acceleration=p.odom_max_acceleration)
 
 
-    def carry(self, last: PoseEstimate | None, twist: TwistData) -> PoseEstimate | None:
-        """``last`` carried on by one (corrected) twist to its time, without the history: the quick
-        answer while the timeline is busy (a sensor update holds the localizer's lock)."""
-        t = twist.stamp + self.time_offset
-        if last is None or not t > last.stamp or t - last.stamp > self.max_gap:
-            return last
-        delta = integrate_twist(self.speed_scale * twist.vx, self.speed_scale * twist.vy,
-                                self.yaw_rate_scale * twist.wz + self.yaw_rate_bias, t - last.stamp)
-        return PoseEstimate(stamp=t, pose=compose(last.pose, delta), covariance=last.covariance)
-
-
 @dataclass(frozen=True)
 class OdometryVerdict:
     """What became of one odometry message."""
@@ -88,8 +84,18 @@ class OdometryVerdict:
     key: str = ""
 
 
+def _locked(method):
+    """``method`` under the timeline's lock (module docstring: thread safety)."""
+    @functools.wraps(method)
+    def locked(self, *args, **kwargs):
+        with self.lock:
+            return method(self, *args, **kwargs)
+    return locked
+
+
 class OdometryTimeline:
     def __init__(self, limits: OdometryLimits | None = None):
+        self.lock = threading.RLock()  # short: held for one call (module docstring)
         self.limits = limits if limits is not None else OdometryLimits()
         lim = self.limits
         self._buffer = OdometryBuffer(lim.time_offset, lim.speed_scale, lim.yaw_rate_scale, lim.yaw_rate_bias,
@@ -101,6 +107,7 @@ class OdometryTimeline:
         self._memo = None  # (anchor, t, pose at t): the newest carried pose
 
     # ------------------------------------------------------------------ odometry in
+    @_locked
     def add(self, twist: TwistData) -> OdometryVerdict:
         """Check one message and add it (its time converted to the scan clock)."""
         lim, stamp = self.limits, twist.stamp
@@ -140,6 +147,16 @@ class OdometryTimeline:
         t = self._buffer.add(twist)
         return OdometryVerdict(True, time=t, restart=(t if restart is None else restart) if new_history else None)
 
+    @_locked
+    def continues(self, twist: TwistData) -> bool:
+        """Whether ``add`` would take this message as the next of the current history (finite, within the
+        limits, newer than the newest by at most ``max_gap``, no jump pending): it then only appends."""
+        lim, last = self.limits, self._last_stamp
+        return (last is not None and self._before_jump is None and not self.empty
+                and all(math.isfinite(v) for v in (twist.stamp, twist.vx, twist.vy, twist.wz))
+                and math.hypot(twist.vx, twist.vy) <= lim.max_speed and abs(twist.wz) <= lim.max_yaw_rate
+                and 0.0 < twist.stamp - last <= lim.max_gap)
+
     # ------------------------------------------------------------------ queries (scan clock)
     @property
     def latest(self) -> float | None:
@@ -150,6 +167,7 @@ class OdometryTimeline:
     def empty(self) -> bool:
         return len(self._buffer) == 0
 
+    @_locked
     def usable(self, t: float | None) -> float | None:
         """t if the history can move a pose from it; after a clock jump (t far outside the history)
         the history's start: the motion across the jump is lost."""
@@ -160,28 +178,35 @@ class OdometryTimeline:
             return oldest
         return t
 
+    @_locked
     def segments(self, t0: float, t1: float):
         """Constant-twist pieces (durations (P,), twists (P, 3)) covering [t0, t1]."""
         return self._buffer.segments(t0, t1)
 
+    @_locked
     def slip_segments(self, t0: float, t1: float):
         """``segments`` and each piece's slip (P, 2): mean (m) and variance (m²) (``odometry.OdometryBuffer``)."""
         return self._buffer.slip_segments(t0, t1)
 
+    @_locked
     def motion(self, t0: float, t1: float) -> np.ndarray:
         return self._buffer.motion(t0, t1)
 
+    @_locked
     def travel(self, t0: float, t1: float) -> tuple[float, float]:
         return self._buffer.travel(t0, t1)
 
+    @_locked
     def twist_at(self, t: float) -> np.ndarray:
         return self._buffer.twist_at(t)
 
     # ------------------------------------------------------------------ the anchor and poses at a time
+    @_locked
     def set_anchor(self, estimate: PoseEstimate | None) -> None:
         self.anchor = estimate
         self.trim()
 
+    @_locked
     def rebase_anchor(self) -> None:
         """An anchor older than half ``max_gap`` moves to the newest odometry (the same pose, carried):
         the history it needs stays short however long no scan corrects it."""
@@ -190,6 +215,7 @@ class OdometryTimeline:
                 latest + self.limits.max_gap):  # old, or on another clock (a pose stamped by the wall clock)
             self.set_anchor(self.pose_at(latest))
 
+    @_locked
     def pose_at(self, t: float) -> PoseEstimate | None:
         """The anchor carried through the odometry to time t (scan clock), backwards too."""
         a = self.anchor
@@ -207,6 +233,7 @@ class OdometryTimeline:
             self._memo = (a, t, pose)
         return PoseEstimate(stamp=t, pose=pose, covariance=a.covariance)
 
+    @_locked
     def trim(self, keep_from: float | None = None) -> None:
         """Forget odometry no longer needed (older than the anchor and ``keep_from``, minus a gap)."""
         keep = [t for t in (keep_from, None if self.anchor is None else self.anchor.stamp, self.latest)
