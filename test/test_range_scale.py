@@ -15,6 +15,8 @@ from localization.core.localizer.range_scale import (
     RangeScaleEstimator,
     estimate_scale,
     fit_scale,
+    fit_step,
+    fit_step_numpy,
     jacobian_poses,
     range_jacobian,
 )
@@ -155,3 +157,45 @@ def test_one_linear_fit_is_exact_for_a_shift_and_rotation_needs_the_second_step(
     valid = cast(pose[None])[0] < reach - 0.25
     assert abs(fit_scale(z, cast, pose, valid, 1.0, steps=1)[0] - 0.98) > 2e-3
     assert fit_scale(z, cast, pose, valid, 1.0, steps=2)[0] == pytest.approx(0.98, abs=2e-4)
+
+
+# ------------------------------------------------------------------ the compiled pieces against their numpy references
+@pytest.mark.parametrize("error, wall_depth", [((0.0, 0.0, 0.0), 0.0), ((-0.05, 0.03, 0.01), 0.025),
+                                               ((0.08, -0.05, 0.0), 0.0), ((0.0, 0.0, 0.02), 0.01)])
+def test_the_compiled_gauss_newton_step_equals_its_numpy_reference(error, wall_depth):
+    z, cast, pose, reach = corridor_scan(0.98, error, n=361)
+    z = z.copy()
+    z[::17] *= 0.7  # returns short of the map (furniture): outside the gate
+    ranges = cast(jacobian_poses(pose))
+    valid = (ranges[0] > 0) & (ranges[0] < reach - 0.25)
+    for scale in (1.0, 0.985):
+        s_ref, used_ref, corr_ref = fit_step_numpy(z, ranges, valid, scale, wall_depth)
+        s, used, corr = fit_step(z, ranges, valid, scale, wall_depth)
+        assert used == used_ref > 100
+        assert s == pytest.approx(s_ref, rel=1e-12, abs=1e-12)
+        np.testing.assert_allclose(corr, corr_ref, rtol=1e-9, atol=1e-12)
+    assert fit_step(z, ranges, np.zeros(z.size, dtype=bool), 1.0)[:2] == (pytest.approx(np.nan, nan_ok=True), 0)
+
+
+@pytest.mark.parametrize("deskew", [False, True])
+@pytest.mark.parametrize("caster", ["lookup_table", "lookup_table_exact"])
+def test_the_compiled_probe_casts_as_its_numpy_reference(caster, deskew):
+    """The range scale's probe casts its poses with the fused kernel's arithmetic (beam_kernels.cast_rows);
+    BeamModel.expected_ranges is its numpy reference."""
+    from localization.core.occupancy_map import load_map
+    sm = BeamModel(ray_caster=caster, laser_offset_x=0.19, laser_offset_y=0.02, laser_offset_yaw=0.01)
+    stata = load_map("basement_fixed")
+    sm.set_map(stata)
+    rng = np.random.default_rng(4)
+    angles = np.linspace(-2.3, 2.3, 100)
+    offsets = np.c_[np.linspace(0, 0.06, 100), np.linspace(0, 0.01, 100), np.linspace(0, 0.03, 100)] if deskew \
+        else None
+    poses = np.vstack([jacobian_poses(p) for p in stata.sample_free_poses(20, rng)] + [[[1e6, 0.0, 0.0]]])
+    probe = sm.range_probe(angles, offsets, 30.0)
+    got = probe.cast(poses)
+    want = sm.expected_ranges(poses, angles, offsets)
+    assert got.shape == want.shape == (141, 100) and (got[-1] == 0).all()
+    if caster == "lookup_table_exact" and deskew:  # as the fused kernel (test_time_alignment): its exact finish
+        assert np.mean(np.abs(got - want) < 1e-9) > 0.95  # marches from each beam's origin, the reference casts
+    else:
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)

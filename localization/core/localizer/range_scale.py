@@ -40,7 +40,9 @@ ahead pin them. Returns shorter than the map says (furniture, people: unmapped o
 ones (glass, open doors) fail the gate unless they lie within a few centimetres of a mapped wall.
 
 ``estimate_scale`` is one linear fit (vectorised numpy over the beams), ``range_jacobian`` J from the
-casts at ``jacobian_poses``, ``fit_scale`` the Gauss-Newton steps, ``RangeScaleEstimator`` keeps s.
+casts at ``jacobian_poses``, ``fit_step_numpy`` one Gauss–Newton step from them (the numpy reference of the
+compiled ``fit_step_kernel``, one pass over the beams; ``fit_step`` picks it), ``fit_scale`` the steps,
+``RangeScaleEstimator`` keeps s.
 Measured effects (simulated perturbed worlds, the real bags) are in docs/models.md.
 """
 from __future__ import annotations
@@ -51,6 +53,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.localizer.health import cloud_spread
+
+try:  # a compiled Gauss–Newton step when numba is there (pinned); the numpy reference otherwise
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
 
 __all__ = ["GATE_FRACTION", "GATE_M", "MAX_SPREAD_M", "MIN_BEAMS", "MIN_BEAM_FRACTION", "RANGE_MARGIN_M",
            "RangeScaleEstimator", "estimate_scale", "fit_scale", "jacobian_poses", "range_jacobian"]
@@ -121,6 +128,104 @@ def range_jacobian(ranges) -> tuple[np.ndarray, np.ndarray]:
     return ((ahead + behind) / (2.0 * step)).T, smooth
 
 
+def fit_step_numpy(z, ranges, valid, scale: float, wall_depth: float = 0.0) -> tuple[float, int, np.ndarray]:
+    """(ŝ, beams used, Δ (3,)) of one Gauss–Newton step from the (7, B) ranges cast at ``jacobian_poses``:
+    J and the smooth beams (``range_jacobian``), the valid smooth beams fitted (``estimate_scale``)."""
+    jacobian, smooth = range_jacobian(ranges)
+    ok = valid & smooth & np.isfinite(ranges[0])
+    if not ok.any():
+        return math.nan, 0, np.zeros(3)
+    return estimate_scale(z[ok], ranges[0][ok], scale, wall_depth, jacobian[ok])
+
+
+_STEPS = np.array([JACOBIAN_STEP_M, JACOBIAN_STEP_M, JACOBIAN_STEP_RAD])
+_PRIOR = np.concatenate([[0.0], (BEAM_STD_M / np.array([PRIOR_STD_M, PRIOR_STD_M, PRIOR_STD_RAD])) ** 2])
+
+if njit is not None:
+    @njit(cache=True, nogil=True)
+    def fit_step_kernel(z, ranges, valid, scale, wall_depth, steps, prior, fit):  # pragma: no cover - compiled
+        """``fit_step_numpy`` in one pass over the beams: ``fit`` (4,) receives (ŝ, Δx, Δy, Δθ); returns the
+        beams used (0: none, ``fit`` NaN). The normal equations are summed beam by beam and solved by Gaussian
+        elimination with partial pivoting (what ``np.linalg.solve`` does, summed in another order)."""
+        n = z.size
+        jac = np.empty((n, 3))
+        ok = np.zeros(n, dtype=np.bool_)
+        for b in range(n):
+            r0 = ranges[0, b]
+            smooth = True
+            for k in range(3):
+                ahead = ranges[1 + 2 * k, b] - r0
+                behind = r0 - ranges[2 + 2 * k, b]
+                if not abs(ahead - behind) <= CURVATURE_M:
+                    smooth = False
+                jac[b, k] = (ahead + behind) / (2.0 * steps[k])
+            ok[b] = valid[b] and smooth and math.isfinite(r0)
+        cur = np.array([scale, 0.0, 0.0, 0.0])
+        m = np.empty((4, 4))
+        rhs = np.empty(4)
+        a = np.empty(4)
+        used = 0
+        for _ in range(2):  # the gate centred on (scale, 0), then on the first fit
+            m[:, :] = 0.0
+            rhs[:] = 0.0
+            used = 0
+            for b in range(n):
+                if not ok[b]:
+                    continue
+                d = ranges[0, b] + wall_depth
+                a[0] = z[b]
+                a[1] = -jac[b, 0]
+                a[2] = -jac[b, 1]
+                a[3] = -jac[b, 2]
+                pred = a[0] * cur[0] + a[1] * cur[1] + a[2] * cur[2] + a[3] * cur[3]
+                if not abs(pred - d) <= GATE_M + GATE_FRACTION * d:
+                    continue
+                used += 1
+                for i in range(4):
+                    rhs[i] += a[i] * d
+                    for k in range(4):
+                        m[i, k] += a[i] * a[k]
+            if used == 0:
+                fit[:] = np.nan
+                return 0
+            for i in range(4):
+                m[i, i] += prior[i]
+            for col in range(4):  # Gaussian elimination with partial pivoting
+                piv = col
+                for r in range(col + 1, 4):
+                    if abs(m[r, col]) > abs(m[piv, col]):
+                        piv = r
+                if piv != col:
+                    for k in range(4):
+                        m[col, k], m[piv, k] = m[piv, k], m[col, k]
+                    rhs[col], rhs[piv] = rhs[piv], rhs[col]
+                for r in range(col + 1, 4):
+                    f = m[r, col] / m[col, col]
+                    for k in range(col, 4):
+                        m[r, k] -= f * m[col, k]
+                    rhs[r] -= f * rhs[col]
+            for i in range(3, -1, -1):
+                acc = rhs[i]
+                for k in range(i + 1, 4):
+                    acc -= m[i, k] * cur[k]
+                cur[i] = acc / m[i, i]
+        fit[:] = cur
+        return used
+else:  # pragma: no cover
+    fit_step_kernel = None
+
+
+def fit_step(z, ranges, valid, scale: float, wall_depth: float = 0.0) -> tuple[float, int, np.ndarray]:
+    """``fit_step_numpy``, compiled (``fit_step_kernel``) when numba is there."""
+    if fit_step_kernel is None:
+        return fit_step_numpy(z, ranges, valid, scale, wall_depth)
+    fit = np.empty(4)
+    used = fit_step_kernel(np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(ranges, dtype=float),
+                           np.ascontiguousarray(valid, dtype=np.bool_), float(scale), float(wall_depth), _STEPS,
+                           _PRIOR, fit)
+    return (float(fit[0]), int(used), fit[1:].copy()) if used else (math.nan, 0, np.zeros(3))
+
+
 def fit_scale(z, cast, pose, valid, scale: float, wall_depth: float = 0.0,
               steps: int = GAUSS_NEWTON_STEPS, ranges=None) -> tuple[float, int]:
     """(ŝ, beams used) of one scan fitted jointly with a pose correction (module docstring): measured
@@ -133,11 +238,7 @@ def fit_scale(z, cast, pose, valid, scale: float, wall_depth: float = 0.0,
     s, used = math.nan, 0
     for _ in range(steps):
         ranges = np.asarray(cast(jacobian_poses(pose)) if ranges is None else ranges, dtype=float)
-        jacobian, smooth = range_jacobian(ranges)
-        ok = valid & smooth & np.isfinite(ranges[0])
-        if not ok.any():
-            return math.nan, 0
-        s, used, correction = estimate_scale(z[ok], ranges[0][ok], scale, wall_depth, jacobian[ok])
+        s, used, correction = fit_step(z, ranges, valid, scale, wall_depth)
         if not math.isfinite(s):
             return math.nan, 0
         pose, ranges = pose + correction, None

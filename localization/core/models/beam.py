@@ -65,7 +65,7 @@ import numpy as np
 
 from localization.core.cost import CostMeter
 from localization.core.geometry import compose
-from localization.core.models.beam_kernels import fused_kernel, fused_kernel_parallel
+from localization.core.models.beam_kernels import cast_rows, fused_kernel, fused_kernel_parallel
 from localization.core.models.sensor import (
     LaserMount,
     Preparation,
@@ -279,10 +279,34 @@ class BeamModel(LaserMount):
         self.params = replace(self.params, lidar_scale_to_map_scale=float(scale))
 
     def range_probe(self, angles, offsets=None, range_max=None) -> RangeProbe:
-        """The beams cast as ``log_likelihood`` casts them, z_max, the table's reach and the wall depth."""
+        """The beams cast as ``log_likelihood`` casts them (compiled with the lookup-table caster: ``cast_rows``,
+        whose numpy reference is ``expected_ranges``), z_max, the table's reach and the wall depth."""
         offsets = sweep_offsets(offsets, np.size(angles))
-        return RangeProbe(lambda poses: self.expected_ranges(poses, angles, offsets), self.max_range_for(range_max),
-                          self.table_range, self.params.map_wall_depth)
+        cast = self._compiled_cast(angles, offsets) if self._fused else (
+            lambda poses: self.expected_ranges(poses, angles, offsets))
+        return RangeProbe(cast, self.max_range_for(range_max), self.table_range, self.params.map_wall_depth)
+
+    def _compiled_cast(self, angles, offsets):
+        """``poses (k, 3) -> (k, B)``: ``expected_ranges(poses, angles, offsets)`` by the fused kernel's own
+        arithmetic (``beam_kernels.cast_rows``)."""
+        angles = np.asarray(angles, dtype=float).ravel()
+        if offsets is None:
+            du = dv = np.zeros(angles.size)
+        else:
+            angles = angles + offsets[:, 2]
+            du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
+            dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
+        p, caster = self.params, self.ray_caster
+        laser = (float(p.laser_offset_x), float(p.laser_offset_y), float(p.laser_offset_yaw))
+        args = (*laser, *caster.kernel_args(angles), du, dv, *(np.empty(angles.size) for _ in range(4)))
+
+        def cast(poses) -> np.ndarray:
+            poses = np.ascontiguousarray(np.atleast_2d(np.asarray(poses, dtype=float)))
+            caster.prepare(poses, laser)  # a large map's table: build the tiles in use
+            out = np.empty((poses.shape[0], angles.size))
+            cast_rows(poses, *args, out)
+            return out
+        return cast
 
     # ------------------------------------------------------------------ the map
     def preparation(self, occupancy_map: OccupancyMap) -> Preparation:

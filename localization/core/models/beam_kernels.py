@@ -101,10 +101,40 @@ if HAVE_NUMBA:
                         beam_s, consts, mode, beam_du, beam_dv, bins_per_metre, z_max, log_rows, squash_factor, out,
                         cols_out)
 
+    @njit(cache=True, nogil=True)
+    def cast_rows(poses, off_x, off_y, off_th, map_ox, map_oy, map_c, map_s, resolution, map_yaw, occupied, index,
+                  table, blocking, beam_f, beam_c, beam_s, consts, mode, beam_du, beam_dv, fs, q0s, q1s, cells,
+                  out):  # pragma: no cover - compiled
+        """out[i, b]: the range (map metres) of beam b cast from the laser of base pose i exactly as ``fused_rows``
+        casts it (``BeamModel.expected_ranges`` is its numpy reference); a laser outside free space sees 0.
+        ``fs``, ``q0s``, ``q1s``, ``cells``: (B,) scratch."""
+        n_bins = table.shape[1]
+        n_beams = beam_f.size
+        for i in range(poses.shape[0]):
+            px = poses[i, 0]
+            py = poses[i, 1]
+            pth = poses[i, 2]
+            c = math.cos(pth)
+            s = math.sin(pth)
+            cell, f0, u, v, sx, sy, sc, ss = locate(px + c * off_x - s * off_y, py + s * off_x + c * off_y,
+                                                    pth + off_th, map_ox, map_oy, map_c, map_s, resolution,
+                                                    map_yaw, index, n_bins)
+            if cell < 0:
+                for b in range(n_beams):
+                    out[i, b] = 0.0
+                continue
+            beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
+                        q1s, cells)
+            if consts[C_REFINE] > 0.0:
+                refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_du, beam_dv, beam_c, beam_s, consts, q0s, q1s,
+                       cells)
+            for b in range(n_beams):
+                out[i, b] = cells[b] * resolution
+
     # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
     from localization.core.compile_cache import drop_if_older
     from localization.core.raycast import kernels as _kernels
-    for _kernel in (fused_rows, fused_kernel, fused_kernel_parallel):
+    for _kernel in (fused_rows, fused_kernel, fused_kernel_parallel, cast_rows):
         drop_if_older(_kernel, _kernels.__file__)
 else:  # pragma: no cover
-    fused_kernel = fused_kernel_parallel = None
+    fused_kernel = fused_kernel_parallel = cast_rows = None
