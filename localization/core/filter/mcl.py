@@ -24,11 +24,13 @@ a wide initial cloud (0.5 m, 0.2 rad) holds only a few particles inside one scan
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from localization.core.cost import WEIGH, CostMeter
+from localization.core.filter.kernels import estimate_kernel, weigh_kernel
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
 from localization.core.geometry import circular_mean, compose, wrap_angle
 from localization.core.models.motion import MotionModel
@@ -38,9 +40,10 @@ from localization.core.occupancy_map import OccupancyMap
 # numpy passes over the N particles (or weights) of each step, counted from the code (``core.cost``)
 MOTION_PASSES = 2  # per odometry piece: the noise draw, the compiled move
 COMPOSE_PASSES = 14  # geometry.compose of the cloud: cos, sin, the products and sums, the wrap
-NORMALISE_PASSES = 6  # add, max, subtract, exp, sum, subtract
+NORMALISE_PASSES = 6  # numpy: add, max, subtract, exp, sum, subtract (compiled, with the ESS's weights: 3)
 COVARIANCE_PASSES = 15  # two dots, the circular mean (4), the difference, its wrap (6), the weighting, the product
-ESTIMATE_PASSES = 5 + 2 + 4 + COVARIANCE_PASSES  # the weights (5), the mean x, y, θ, the covariance
+ESTIMATE_PASSES = 5 + 2 + 4 + COVARIANCE_PASSES  # numpy: the weights (5), the mean x, y, θ, the covariance
+COMPILED_PASSES = 3  # weigh_kernel, estimate_kernel: three passes each (filter/kernels.py)
 TEMPERING_PASSES = 2 + 30 * 5  # a stage's β: the bisection's effective sample sizes
 KLD_RESAMPLE_PASSES = 20  # the KLD sampler's draw and bins, the copy, the roughening
 
@@ -61,6 +64,25 @@ class Snapshot:
     def estimate(self) -> Estimate:
         """The estimate of this cloud (as ``MonteCarloLocalizer.estimate`` gives it once restored)."""
         return estimate_of(self.particles, self.log_weights)
+
+
+class _Arrays:
+    """The arrays a filter reuses from scan to scan, by name and shape (no allocation in steady state): a
+    spare of a kind is one that is neither in ``busy`` (the filter's current arrays, a snapshot's)."""
+
+    def __init__(self):
+        self._pool: dict[tuple, list[np.ndarray]] = {}
+
+    def spare(self, kind: str, shape: tuple, busy=()) -> np.ndarray:
+        pool = self._pool.setdefault((kind, shape), [])
+        taken = {id(a) for a in busy}
+        for a in pool:
+            if id(a) not in taken:
+                return a
+        if len(pool) > 4:  # shapes come and go (an adaptive count): keep the pool small
+            pool.pop(0)
+        pool.append(np.empty(shape))
+        return pool[-1]
 
 
 @dataclass
@@ -89,6 +111,9 @@ class MonteCarloLocalizer:
         self.kld_hold = False  # True: keep the current count even with a KLD sampler (a global spread)
         self.beams_used: tuple[int | None, int] | None = None  # the last sensor update's (used, offered) beams
         self.cost = CostMeter()  # beams cast and passes over the cloud (``core.cost``; the localizer shares one)
+        self._arrays = _Arrays()  # reused from scan to scan
+        self._held: tuple = ()  # the arrays the last snapshot holds: not written until it is taken back
+        self._weights = None  # (log weights, exp of them, Σ of their squares) of the last compiled weighing
 
     # ------------------------------------------------------------------ initialisation
     def initialize_gaussian(self, pose, covariance=None, std=(0.5, 0.5, 0.2)) -> None:
@@ -131,9 +156,14 @@ class MonteCarloLocalizer:
         self._reset_weights()
 
     def snapshot(self) -> Snapshot:
-        """The particles and their log weights (copies), for ``restore``."""
-        self.cost.sweep("snapshot", 2)
-        return Snapshot(self.particles.copy(), self.log_weights.copy())
+        """The particles and their log weights, for ``restore`` within the same scan: no copy, the filter
+        writes its updates into other arrays (``_spare``) and moves the cloud in place only at the next scan."""
+        self._held = (self.particles, self.log_weights)
+        return Snapshot(self.particles, self.log_weights)
+
+    def _spare(self, kind: str, shape: tuple) -> np.ndarray:
+        """A reused array (``_Arrays``) that is not the current cloud's nor the last snapshot's."""
+        return self._arrays.spare(kind, shape, (self.particles, self.log_weights, *self._held))
 
     def restore(self, snapshot: Snapshot) -> None:
         """Back to a ``snapshot`` (an update undone); the snapshot's arrays become the filter's."""
@@ -150,14 +180,18 @@ class MonteCarloLocalizer:
         self.kld_hold = bool(hold)
 
     def _reset_weights(self) -> None:
-        self.log_weights = np.full(self.num_particles, -np.log(self.num_particles))
+        log_weights = self._spare("log_weights", (self.num_particles,))
+        log_weights.fill(-np.log(self.num_particles))
+        self.log_weights = log_weights
         self.initialized = True
 
     # ------------------------------------------------------------------ updates
     def motion_update(self, odometry, slip: float = 0.0, slip_var: float = 0.0) -> None:
         """Move every particle by the robot-frame odometry delta [dx, dy, dθ] (``slip``, ``slip_var``: the
         mean (m) and variance (m²) of how much farther forward the robot went; ``MotionModel.evaluate``)."""
-        self.motion_model.evaluate(self.particles, odometry, out=self.particles, slip=slip, slip_var=slip_var)
+        n = len(self.particles)
+        self.motion_model.evaluate(self.particles, odometry, out=self.particles, slip=slip, slip_var=slip_var,
+                                   noise_out=self._spare("noise", (n, 3)))
         self.cost.sweep("motion", MOTION_PASSES)
 
     def shift(self, delta) -> None:
@@ -208,8 +242,10 @@ class MonteCarloLocalizer:
     def _log_likelihood(self, ranges, angles, offsets, range_max, name: str = WEIGH) -> np.ndarray:
         """The sensor model's log p(z | particle); records the (used, offered) beams of the update and
         counts its N × B beams as ``name`` (the cost's ``weigh``, or an extra)."""
+        extra = {"out": self._spare("likelihood", (len(self.particles),))} if getattr(
+            self.sensor_model, "accepts_out", False) else {}  # a model that writes into a reused array
         log_lik = self.sensor_model.log_likelihood(self.particles, ranges, angles, offsets=offsets,
-                                                   range_max=range_max)
+                                                   range_max=range_max, **extra)
         self.cost.cast(name, len(self.particles) * int(np.size(ranges)))
         self.cost.sweep(WEIGH)
         # (beams used, beams offered) by this update: beam skipping and out-of-range beams leave some out
@@ -218,21 +254,33 @@ class MonteCarloLocalizer:
 
     def _weigh(self, log_factor) -> float | None:
         """log w ← log w + log_factor, normalised in log space; returns the log normaliser (log of the
-        weighted-mean factor), or None with the weights unchanged when every particle gets weight 0."""
-        combined = self.log_weights + log_factor
-        peak = combined.max()
-        self.cost.sweep("normalise", NORMALISE_PASSES)
-        if not np.isfinite(peak):
+        weighted-mean factor), or None with the weights unchanged when every particle gets weight 0.
+        Compiled (``kernels.weigh_kernel``, into reused arrays) when numba is there; ``weigh_numpy`` else."""
+        n = len(self.log_weights)
+        if weigh_kernel is None or np.shape(log_factor) != (n,):
+            self.cost.sweep("normalise", NORMALISE_PASSES)
+            weighed = weigh_numpy(self.log_weights, log_factor)
+            if weighed is None:
+                return None
+            self.log_weights, norm = weighed
+            return norm
+        self.cost.sweep("normalise", COMPILED_PASSES)  # with the weights and their squares (the ESS)
+        out, weights = self._spare("log_weights", (n,)), self._spare("weights", (n,))
+        norm, squares = weigh_kernel(self.log_weights, np.ascontiguousarray(log_factor, dtype=float), out, weights)
+        if not math.isfinite(norm):
             return None
-        norm = float(peak + np.log(np.exp(combined - peak).sum()))
-        self.log_weights = combined - norm
-        return norm
+        self.log_weights, self._weights = out, (out, weights, squares)
+        return float(norm)
 
     def _resample_if_due(self, mean_ll: float) -> SensorUpdateResult:
         """Resample when the ESS is below ``resample_ess_fraction`` · N (always at 1.0)."""
-        weights = np.exp(self.log_weights)
-        ess = float(1.0 / np.dot(weights, weights))
-        self.cost.sweep("ess", 2)  # exp, dot
+        if self._weights is not None and self._weights[0] is self.log_weights:  # the weighing's own
+            _, weights, squares = self._weights
+        else:
+            weights = np.exp(self.log_weights)
+            squares = float(np.dot(weights, weights))
+            self.cost.sweep("ess", 2)  # exp, dot
+        ess = float(1.0 / squares)
         resampled = ess < self.resample_ess_fraction * self.num_particles or self.resample_ess_fraction >= 1.0
         if resampled:
             self.resample(weights)
@@ -267,9 +315,11 @@ class MonteCarloLocalizer:
         if resample_kernel is not None and self.particles.shape == (n, 3) and len(weights) == n:
             # one compiled O(N) pass: the same draws, indices and arithmetic as the numpy code below
             u0 = self.rng.random()
-            rough = self.roughening.any()
-            noise = self.rng.standard_normal((n, 3)) if rough else NO_NOISE
-            out = np.empty((n, 3))
+            noise = NO_NOISE
+            if self.roughening.any():
+                noise = self._spare("noise", (n, 3))
+                self.rng.standard_normal(out=noise)  # the same draws as standard_normal((n, 3))
+            out = self._spare("particles", (n, 3))
             resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
                              self.roughening, out)
             self.cost.sweep("resample", 3)  # the noise draw, the compiled walk, the weights reset
@@ -294,7 +344,7 @@ class MonteCarloLocalizer:
 
     def estimate(self) -> Estimate:
         """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped)."""
-        self.cost.sweep("estimate", ESTIMATE_PASSES)
+        self.cost.sweep("estimate", COMPILED_PASSES if estimate_kernel is not None else ESTIMATE_PASSES)
         return estimate_of(self.particles, self.log_weights)
 
 
@@ -314,8 +364,30 @@ def weighted_covariance(particles, weights) -> np.ndarray:
     return (diff * weights[:, None]).T @ diff
 
 
+def weigh_numpy(log_weights, log_factor) -> tuple[np.ndarray, float] | None:
+    """(log_weights + log_factor normalised in log space, the log normaliser); None when every particle gets
+    weight 0: the numpy reference of ``kernels.weigh_kernel``."""
+    combined = log_weights + log_factor
+    peak = combined.max()
+    if not np.isfinite(peak):
+        return None
+    norm = float(peak + np.log(np.exp(combined - peak).sum()))
+    return combined - norm, norm
+
+
 def estimate_of(particles, log_weights) -> Estimate:
-    """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped) of a cloud."""
+    """Weighted mean x, y, circular mean θ, and the weighted covariance (θ wrapped) of a cloud: compiled
+    (``kernels.estimate_kernel``) when numba is there, ``estimate_of_numpy`` else."""
+    particles = np.asarray(particles, dtype=float)
+    if estimate_kernel is None or particles.ndim != 2 or len(particles) == 0:
+        return estimate_of_numpy(particles, log_weights)
+    mean, cov = np.empty(3), np.empty((3, 3))
+    estimate_kernel(np.ascontiguousarray(particles), np.ascontiguousarray(log_weights, dtype=float), mean, cov)
+    return Estimate(mean, cov)
+
+
+def estimate_of_numpy(particles, log_weights) -> Estimate:
+    """``estimate_of`` in numpy: the reference of the compiled kernel."""
     w = normalised_weights(log_weights)
     x = float(np.dot(w, particles[:, 0]))
     y = float(np.dot(w, particles[:, 1]))

@@ -178,6 +178,7 @@ class BeamModel(LaserMount):
 
     supports_deskew = True  # log_likelihood takes per-beam laser offsets (a deskewed sweep)
     supports_range_scale = True  # casts ranges: the range scale can be learnt online (range_probe)
+    accepts_out = True  # log_likelihood(..., out=) writes into a caller's array (the filter reuses one)
 
     def __init__(self, params: BeamModelParams | None = None, *, occupancy_map: OccupancyMap | None = None,
                  laser_offset=None, **overrides):
@@ -190,6 +191,7 @@ class BeamModel(LaserMount):
         self._tables: dict = {}  # z_max row k -> (table, log table) of rows/columns 0 … k
         self.last_beams_used: int | None = None  # beams used by the last evaluation (do_beamskip leaves some out)
         self.cost = CostMeter()  # beam skipping's extra work (``core.cost``; a localizer shares its meter)
+        self._rows = None  # the log table rows of the last scan's beams (an array reused)
         self.precompute_sensor_model()
         if occupancy_map is not None:
             self.set_map(occupancy_map)
@@ -412,11 +414,13 @@ class BeamModel(LaserMount):
             angles = self.default_angles(observation.size)
         return particles, observation, np.asarray(angles, dtype=float).ravel(), sweep_offsets(offsets, observation.size)
 
-    def log_likelihood(self, particles, observation, angles=None, offsets=None, range_max=None) -> np.ndarray:
+    def log_likelihood(self, particles, observation, angles=None, offsets=None, range_max=None,
+                       out=None) -> np.ndarray:
         """Squashed log weights (N,): sum over beams of log p(z|d), divided by squash_factor;
         −inf for particles off the map or in an occupied cell. ``offsets`` (B, 3): per-beam laser
         motion (dx, dy, dθ) during a sweep, in the laser frame (deskew; see the module docstring);
-        ``range_max``: the scan's (lidar metres), z_max when ``laser_max_range`` <= 0."""
+        ``range_max``: the scan's (lidar metres), z_max when ``laser_max_range`` <= 0; ``out`` (N,): an
+        array to write them into (the compiled pass; None: a new one)."""
         particles, observation, angles, offsets = self._inputs(particles, observation, angles, offsets)
         if not self._fused:
             return self.log_likelihood_numpy(particles, observation, angles, offsets, range_max)
@@ -424,8 +428,13 @@ class BeamModel(LaserMount):
         k = self.z_max_row(range_max)
         self.ray_caster.prepare(particles, self.laser_offset)  # a large map's table: build the tiles in use
         z = self.measured_to_cells(observation, k)
-        log_rows = np.ascontiguousarray(self.log_table(k)[z])
-        out = np.empty(particles.shape[0])
+        log_table = self.log_table(k)
+        log_rows = self._rows
+        if log_rows is None or log_rows.shape != (z.size, log_table.shape[1]):
+            log_rows = self._rows = np.empty((z.size, log_table.shape[1]))
+        np.take(log_table, z, axis=0, out=log_rows)  # each beam's log table row (kept from scan to scan)
+        if out is None or out.shape != (particles.shape[0],):
+            out = np.empty(particles.shape[0])
         ox, oy, oth = p.laser_offset_x, p.laser_offset_y, p.laser_offset_yaw
         if offsets is None:
             du = dv = np.zeros(angles.size)

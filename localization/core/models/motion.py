@@ -238,13 +238,15 @@ class MotionModel:
         return np.sqrt(np.diag(self.noise_covariance(odometry)))
 
     # ------------------------------------------------------------------ moving particles
-    def evaluate(self, particles, odometry, out=None, slip: float = 0.0, slip_var: float = 0.0) -> np.ndarray:
+    def evaluate(self, particles, odometry, out=None, slip: float = 0.0, slip_var: float = 0.0,
+                 noise_out=None) -> np.ndarray:
         """Move particles (N, 3) by odometry [dx, dy, dθ] (robot frame); returns (N, 3).
 
         ``slip`` (m) and ``slip_var`` (m²): the mean and variance of how much farther forward (along the
         heading at the piece's start) the robot went than the odometry says, a skid or wheel spin
         (``odometry.OdometryBuffer``): added to dx and to Σ(u)'s along-track variance. ``deterministic``
-        ignores them. ``out`` may be ``particles`` itself to update in place."""
+        ignores them. ``out`` may be ``particles`` itself to update in place; ``noise_out`` (N, 3): an array
+        to draw the noise into (the same draws; None: a new one)."""
         particles = np.asarray(particles, dtype=float)
         u, vx, vy, w = self._piece(odometry)
         n = particles.shape[0]
@@ -257,7 +259,10 @@ class MotionModel:
             if cov.any():
                 vals, vecs = np.linalg.eigh(cov)
                 factor = vecs * np.sqrt(np.clip(vals, 0.0, None))  # factor @ factor.T == cov
-                noise = self.rng.standard_normal((n, 3))
+                if noise_out is not None and noise_out.shape == (n, 3):
+                    noise = self.rng.standard_normal(out=noise_out)  # the draws of standard_normal((n, 3))
+                else:
+                    noise = self.rng.standard_normal((n, 3))
         if out is None:
             out = np.empty_like(particles)
         if _move_kernel is not None and particles.ndim == 2 and particles.shape[1] == 3:
