@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from localization.benchmarks import ablation as A
@@ -165,3 +166,30 @@ def test_a_results_file_gives_back_the_jobs_it_holds_and_only_those(tmp_path):
     done = A.load_results(path, [a, b, changed])
     assert list(done) == [A.job_key(a)] and done[A.job_key(a)] == (a, ({"median": 0.02, "false": 0},), None, 3.0)
     assert A.load_results(None, [a]) == {} and A.load_results(tmp_path / "none.jsonl", [a]) == {}
+
+
+class FakeLocalizer:
+    def __init__(self):
+        self.recoveries, self.cloud, self.t = 0, np.zeros((4, 3)), 0.0
+
+    def particles(self):
+        return self.cloud.copy()
+
+    def scan_time(self, scan):
+        return self.t
+
+
+def test_the_switch_watch_scores_each_switch_against_the_truth_and_ignores_re_spreads():
+    truth_t, truth = np.array([0.0, 10.0]), np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    watch, loc = J.SwitchWatch(truth_t, truth, 0.5), FakeLocalizer()
+    loc.t, loc.cloud[:, 0] = 2.0, 2.1  # no switch yet: nothing
+    watch(None, loc)
+    loc.recoveries = 1  # a switch to (2.1, 0) at t = 2 s, the truth (2, 0): right
+    watch(None, loc)
+    watch(None, loc)  # the same switch seen again: counted once
+    loc.recoveries, loc.t = 2, 5.0  # a switch 3 m off: false
+    loc.cloud[:, :2] = [8.0, 0.0] + np.array([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.1], [0.0, -0.1]])
+    watch(None, loc)
+    loc.recoveries, loc.cloud[:, 0] = 3, [-20.0, 20.0, -5.0, 5.0]  # a re-spread over the map: not a switch
+    watch(None, loc)
+    assert watch.distances == pytest.approx([0.1, 3.0]) and watch.false == 1

@@ -250,44 +250,66 @@ def loop_recording(kind: str, r: int, runs: int):
     return rec, occ
 
 
+class SwitchWatch:
+    """``on_scan`` hook: where the cloud is each time the localizer switches it (``Localizer.recoveries`` goes up
+    with the cloud in one place; a re-spread over the map is not a switch), as the distance (m) from the truth
+    at that scan's time. A switch more than 1 m from the truth is a false recovery."""
+
+    def __init__(self, truth_t, truth_poses, one_place_std: float):
+        self.truth_t, self.truth_poses, self.one_place_std = truth_t, truth_poses, one_place_std
+        self.seen = 0
+        self.distances: list = []
+
+    def __call__(self, scan, localizer) -> None:
+        from localization.eval import metrics as M
+        if localizer.recoveries <= self.seen:
+            return
+        self.seen = localizer.recoveries
+        xy = localizer.particles()[:, :2]
+        if np.max(np.std(xy, axis=0)) >= self.one_place_std:
+            return
+        truth = M.interpolate_poses([localizer.scan_time(scan)], self.truth_t, self.truth_poses)[0]
+        self.distances.append(float(np.hypot(*(xy.mean(axis=0) - truth[:2]))))
+
+    @property
+    def false(self) -> int:
+        from localization.eval.metrics import FALSE_RECOVERY_M
+        return sum(d > FALSE_RECOVERY_M for d in self.distances)
+
+
 def _loop_run(job: Job, seed_base: int):
-    from localization.benchmarks.robustness import ct_errors, run_recording
+    """A global start or kidnapping fed to the Localizer as ``robustness.run_recording`` feeds it, its switches
+    watched: (recording, comparison with the truth, ``SwitchWatch``, recoveries)."""
     from localization.core.localizer import Localizer
+    from localization.eval import metrics as M
+    from localization.eval.feed import Feeder, recording_events
     rec, occ = loop_recording(job.group, int(job.label), job.runs)
     over = {**dict(job.overrides), "random_seed": seed_base + int(job.label) + 1000 * job.seed}
     params = Parameters.from_yaml(config_dir() / PARAMS_FILE[job.group], **over)
     loc = Localizer(params, logging.getLogger("localization.ablation"))
     loc.set_map(occ)
-    run = run_recording(rec, loc, init="global" if job.group == "global" else "pose")
-    return rec, run, ct_errors(rec, run)
-
-
-def _false_after_first_fix(cmp, t_from: float) -> int:
-    """Runs of estimates > 1 m off after the error first fell below the target at or after ``t_from``."""
-    from localization.benchmarks.robustness import TARGET_M
-    from localization.eval import metrics as M
-    fix = np.flatnonzero((cmp.t >= t_from) & (cmp.ct_error < TARGET_M))
-    if not fix.size:
-        return 0
-    return M.false_recoveries(cmp.t, cmp.ct_error, M.FALSE_RECOVERY_M, after=0.0, t_start=float(cmp.t[fix[0]]))
+    t_start = float(rec.odometry.t[0])
+    if job.group == "global":
+        loc.initialize_global(t_start)
+    else:
+        loc.set_initial_pose(rec.initial_pose, None, t_start)
+    watch = SwitchWatch(rec.truth_t, rec.truth_poses, params.global_converged_std)
+    est_t, est_poses = Feeder(loc).run(recording_events(rec), on_scan=watch).estimates()
+    return rec, M.compare_to_truth(est_t, est_poses, rec.truth_t, rec.truth_poses), watch, loc.recoveries
 
 
 def run_global(job: Job) -> list:
     from localization.benchmarks.robustness import settle_time
-    rec, run, cmp = _loop_run(job, 100)
-    t0 = float(rec.odometry.t[0])
-    return [{"label": job.label, "converged_s": settle_time(cmp, t0), "false": _false_after_first_fix(cmp, t0),
-             "recoveries": run.recoveries}]
+    rec, cmp, watch, recoveries = _loop_run(job, 100)
+    return [{"label": job.label, "converged_s": settle_time(cmp, float(rec.odometry.t[0])), "false": watch.false,
+             "recoveries": recoveries}]
 
 
 def run_kidnap(job: Job) -> list:
     from localization.benchmarks.robustness import settle_time
-    from localization.eval import metrics as M
-    rec, run, cmp = _loop_run(job, 200)
-    before = cmp.t < KIDNAP_AT_S
-    false = M.false_recoveries(cmp.t[before], cmp.ct_error[before]) + _false_after_first_fix(cmp, KIDNAP_AT_S)
-    return [{"label": job.label, "back_s": settle_time(cmp, KIDNAP_AT_S), "false": false,
-             "recoveries": run.recoveries}]
+    rec, cmp, watch, recoveries = _loop_run(job, 200)
+    return [{"label": job.label, "back_s": settle_time(cmp, KIDNAP_AT_S), "false": watch.false,
+             "recoveries": recoveries, "switch_m": watch.distances}]
 
 
 RUNNERS = {"rss": run_rss, "pioneer": run_pioneer, "perturbed": run_perturbed, "global": run_global,

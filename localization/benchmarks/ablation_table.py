@@ -103,7 +103,9 @@ COLUMNS = (
     Column("kid_s", "Kidnap s", ("kidnap",), median_time("back_s"), "lower",
            "kidnapped runs: median seconds until back below 0.3 m for good (never: inf)", decimals=1),
     Column("false", "false", GROUPS, sum_of("false"), "lower",
-           "false recoveries, all runs: runs of estimates > 1 m from the truth or yardstick once tracking",
+           "false recoveries, summed over the runs: RSS and perturbed, runs of estimates > 1 m from the yardstick or "
+           "truth (the replay's); Pioneer, the demo's (> 1 m from the yardstick once converged); global starts and "
+           "kidnappings, switches of the cloud to a place > 1 m from the truth",
            count=True),
     Column("jump", "jump", ("rss", "pioneer", "perturbed"), max_of("jump"), "lower",
            "largest step between consecutive published estimates once tracking (m), over the RSS, Pioneer "
