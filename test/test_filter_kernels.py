@@ -90,3 +90,26 @@ def test_a_steady_sensor_update_allocates_nothing_that_grows_with_the_particles(
     finally:
         tracemalloc.stop()
     assert max(peaks) < n * 8, peaks  # less than one (N,) float array
+
+
+def test_the_agreement_equals_its_numpy_reference():
+    """The scan-map agreement (health.AgreementScorer.score, one compiled pass over the beams) and its numpy
+    reference, on a real map, poses in and off it, beams with no return, out of limits and non-finite."""
+    from localization.core.localizer.health import AgreementScorer
+    from localization.core.occupancy_map import load_map
+    stata = load_map("basement_fixed")
+    scorer = AgreementScorer(stata, (0.19, 0.01, 0.02), range_scale=0.9993)
+    rng = np.random.default_rng(7)
+    angles = np.linspace(-2.35, 2.35, 1081)
+    poses = np.vstack([stata.sample_free_poses(50, rng), [[1e4, 0.0, 0.0], [np.nan, 0.0, 0.0]]])
+    caster_ranges = rng.uniform(0.1, 12.0, (len(poses), angles.size))
+    caster_ranges[:, ::11] = np.inf
+    caster_ranges[:, 5::13] = np.nan
+    scored = 0
+    for pose, ranges in zip(poses, caster_ranges):
+        fast = scorer.score(pose, ranges, angles, 0.06, 10.0)
+        ref = scorer.score_numpy(pose, ranges, angles, 0.06, 10.0)
+        assert fast == ref or (np.isnan(fast) and np.isnan(ref))
+        scored += bool(fast > 0)
+    assert scored > 20
+    assert np.isnan(scorer.score(poses[0], np.full(10, np.inf), angles[:10], 0.06, 10.0))

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.geometry import compose, integrate_twist, inverse
+from localization.core.geometry import integrate_twist, inverse
 
 
 @dataclass
@@ -73,6 +73,7 @@ class OdometryBuffer:
         self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
         self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
         self._after_boundary = False  # the newest message is a history's start marker (no measured speed)
+        self._arrays = None  # (stamps, twists, slips, slipped) as arrays, made once per change (queries reuse them)
 
     def __len__(self) -> int:
         return len(self._t)
@@ -104,9 +105,11 @@ class OdometryBuffer:
         self._slip.append(slip)
         self._slipped.append(slipped)
         self._after_boundary = boundary
+        self._arrays = None
         return t
 
     def reset(self) -> None:
+        self._arrays = None
         self._t.clear()
         self._twist.clear()
         self._slip.clear()
@@ -118,17 +121,25 @@ class OdometryBuffer:
         n = int(np.searchsorted(self._t, before, side="left")) - 1  # self._t[n] < before: still the start
         n = min(n, len(self._t) - keep)
         if n > 0:
+            self._arrays = None
             del self._t[:n]
             del self._twist[:n]
             del self._slip[:n]
             del self._slipped[:n]
+
+    def _as_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(stamps (K,), twists (K, 3), slips (K,), slipped (K,)) as arrays (made once until the next change)."""
+        if self._arrays is None:
+            self._arrays = (np.asarray(self._t, dtype=float), np.asarray(self._twist, dtype=float).reshape(-1, 3),
+                            np.asarray(self._slip, dtype=float), np.asarray(self._slipped, dtype=float))
+        return self._arrays
 
     def twist_at(self, t: float) -> np.ndarray:
         """Corrected twist (vx, vy, ωz) holding at time t (the newest just past the end, the oldest just
         before the start; zero beyond the extrapolation limit either side, or when empty)."""
         if not self._t or t <= self._t[0] - self.extrapolation or t >= self._t[-1] + self.extrapolation:
             return np.zeros(3)
-        k = min(int(np.searchsorted(self._t, t, side="left")), len(self._t) - 1)
+        k = min(int(np.searchsorted(self._as_arrays()[0], t, side="left")), len(self._t) - 1)
         return np.array(self._twist[k])
 
     def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
@@ -144,7 +155,7 @@ class OdometryBuffer:
         extrapolated or unknown)."""
         if not t1 > t0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2))
-        stamps = np.asarray(self._t, dtype=float)
+        stamps, twist_rows, slip_rows, slipped_rows = self._as_arrays()
         cuts = np.concatenate([[stamps[0] - self.extrapolation], stamps, [stamps[-1] + self.extrapolation]]) \
             if stamps.size else stamps
         inner = cuts[(cuts > t0) & (cuts < t1)]
@@ -156,13 +167,13 @@ class OdometryBuffer:
             mid = 0.5 * (edges[:-1] + edges[1:])
             k = np.minimum(np.searchsorted(stamps, mid, side="left"), stamps.size - 1)
             known = (mid > stamps[0] - self.extrapolation) & (mid < stamps[-1] + self.extrapolation)
-            twists[known] = np.asarray(self._twist, dtype=float)[k[known]]
+            twists[known] = twist_rows[k[known]]
             inside = (np.flatnonzero(known & (mid > stamps[0]) & (mid <= stamps[-1]))  # periods the odometry reported
                       if self.max_acceleration > 0.0 else ())
             if len(inside):
                 ki = k[inside]
-                speed = np.asarray(self._slip, dtype=float)[ki]  # m/s
-                start = np.asarray(self._slipped, dtype=float)[ki]  # m: A at the period's start
+                speed = slip_rows[ki]  # m/s
+                start = slipped_rows[ki]  # m: A at the period's start
                 a0 = start + np.abs(speed) * (edges[inside] - stamps[ki - 1])  # A at the piece's start
                 a1 = a0 + np.abs(speed) * dts[inside]
                 slips[inside, 0] = 0.5 * speed * dts[inside]
@@ -186,7 +197,11 @@ class OdometryBuffer:
             return np.zeros(3)
         if t1 < t0:
             return inverse(self.motion(t1, t0))
-        delta = np.zeros(3)
-        for dt, (vx, vy, wz) in zip(*self.segments(t0, t1)):
-            delta = compose(delta, integrate_twist(vx, vy, wz, dt))
-        return delta
+        x = y = th = 0.0  # the pieces' arcs composed in floats (geometry.compose's arithmetic, a few pieces)
+        for dt, (vx, vy, wz) in zip(*(a.tolist() for a in self.segments(t0, t1))):
+            dx, dy, dth = integrate_twist(vx, vy, wz, dt).tolist()
+            c, s = math.cos(th), math.sin(th)
+            x, y = x + c * dx - s * dy, y + s * dx + c * dy
+            th = (th + dth + math.pi) % (2.0 * math.pi) - math.pi  # geometry.wrap_angle
+            th = th + 2.0 * math.pi if th <= -math.pi else th
+        return np.array([x, y, th])

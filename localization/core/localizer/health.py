@@ -4,7 +4,8 @@ Two pieces:
 
 - ``AgreementScorer``: the scan–map agreement of one pose — the fraction of valid beams whose
   endpoint lies within ``tolerance`` (0.10 m) of an occupied map cell. It is also the truth-free
-  quality figure of ``localization.metrics`` (which re-exports it from here).
+  quality figure of ``localization.metrics`` (which re-exports it from here). One compiled pass over
+  the beams (``agreement_kernel``); ``score_numpy`` is its numpy reference.
 - ``HealthMonitor``: after every sensor update the Localizer scores the estimate against the
   (downsampled) scan and feeds the agreement ``a_k`` to two exponential moving averages, as in
   augmented MCL (Thrun, Burgard, Fox, *Probabilistic Robotics*, table 8.3) but on the agreement
@@ -29,6 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.geometry import compose
+
+try:  # one compiled pass over the beams when numba is there (pinned); the numpy reference otherwise
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.parameters import default
 
@@ -60,10 +66,54 @@ class AgreementScorer:
 
     def score(self, base_pose, ranges, angles, range_min: float, range_max: float) -> float:
         """Fraction of valid beams ending within ``tolerance`` of an occupied cell (NaN: none valid)."""
+        if agreement_kernel is None:
+            return self.score_numpy(base_pose, ranges, angles, range_min, range_max)
+        laser = compose(np.asarray(base_pose, dtype=float), self.laser_offset)
+        ox, oy, yaw = self.map.origin
+        hits, valid = agreement_kernel(float(laser[0]), float(laser[1]), float(laser[2]),
+                                       np.ascontiguousarray(ranges, dtype=float).ravel(),
+                                       np.ascontiguousarray(angles, dtype=float).ravel(), float(range_min),
+                                       float(range_max), self.range_scale, float(ox), float(oy), math.cos(yaw),
+                                       math.sin(yaw), float(self.map.resolution), self.near)
+        return hits / valid if valid else math.nan
+
+    def score_numpy(self, base_pose, ranges, angles, range_min: float, range_max: float) -> float:
+        """``score`` in numpy: the reference of ``agreement_kernel``."""
         pts = self.endpoints(base_pose, ranges, angles, range_min, range_max)
         if len(pts) == 0:
             return math.nan
         return float(np.count_nonzero(self.map.lookup(pts, self.near)) / len(pts))
+
+
+if njit is not None:
+    @njit(cache=True, nogil=True)
+    def agreement_kernel(lx, ly, lth, ranges, angles, range_min, range_max, scale, map_ox, map_oy, map_c, map_s,
+                         resolution, near):  # pragma: no cover - compiled
+        """(beams ending in a ``near`` cell, valid beams) for the laser at (lx, ly, lth): as
+        ``AgreementScorer.endpoints`` and ``OccupancyMap.lookup`` (off the map: not near)."""
+        h, w = near.shape
+        hits = 0
+        valid = 0
+        for b in range(ranges.size):
+            r = ranges[b]
+            if not (math.isfinite(r) and r >= range_min and r < range_max):
+                continue
+            valid += 1
+            th = lth + angles[b]
+            r = r * scale
+            dx = lx + r * math.cos(th) - map_ox
+            dy = ly + r * math.sin(th) - map_oy
+            gx = (map_c * dx + map_s * dy) / resolution
+            gy = (-map_s * dx + map_c * dy) / resolution
+            if not (math.isfinite(gx) and math.isfinite(gy)):
+                continue
+            col = int(math.floor(gx))
+            row = int(math.floor(gy))
+            if 0 <= col < w and 0 <= row < h and near[row, col]:
+                hits += 1
+        return hits, valid
+else:  # pragma: no cover
+    agreement_kernel = None
 
 
 @dataclass
