@@ -44,3 +44,15 @@ def test_a_cold_cache_is_filled_by_a_child_then_only_loaded(tmp_path):
     # another model's kernels are not in the cache yet: compiled by a child too
     lf = run_probe({"sensor_model": "likelihood_field"}, tmp_path)
     assert lf["first"] == "compiled"
+
+
+def test_the_shipped_car_file_compiles_every_kernel_in_the_child(tmp_path):
+    """config/real_params.yaml (odometry stamps 0.129 s ahead on the scan clock, the range scale learnt online):
+    the child's drive reaches every kernel the car runs, so none is left to compile in the node's process."""
+    from localization.core.paths import config_dir
+    params = dict(Parameters.from_yaml(config_dir() / "real_params.yaml"))
+    first = run_probe(params, tmp_path)
+    kernels = cc.kernels_for(Parameters(params))
+    assert ("localization.core.models.motion", "_move_kernel") in kernels and len(kernels) >= 10
+    assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
+    assert run_probe(params, tmp_path)["first"] == "cached"

@@ -1,5 +1,5 @@
 """The child process of ``compile_cache.ensure_compiled``: run a localizer with the given parameters
-on a tiny synthetic map through one odometry and one scan, so every kernel it uses is compiled
+on a tiny synthetic map through a short drive (odometry and scans), so every kernel it uses is compiled
 (with the very types the real run uses) into numba's on-disk cache, then exit.
 
     python -m localization.core.localizer.compile_kernels '<parameters as JSON>'
@@ -22,26 +22,41 @@ def tiny_map():
 
 
 def compile_kernels(params) -> None:
-    """Run a localizer with ``params`` on ``tiny_map`` through one odometry and one scan."""
+    """Run a localizer with ``params`` on ``tiny_map``: a tight initial pose (so the cloud counts as converged
+    and learns the range scale), then 0.6 s of driving with odometry at 50 Hz and a scan ray cast in the map
+    every 0.1 s. The odometry's stamps are shifted by ``odom_time_offset``, so that on the scan clock it covers
+    the scans whatever the robot's calibration (with the car's +0.129 s the first scans came before any
+    odometry and the motion kernel was never called: never cached)."""
     from localization.core.localizer import Localizer
     from localization.core.odometry import TwistData
     from localization.core.parameters import Parameters
+    from localization.core.raycast.exact import ExactRayCaster
     from localization.core.scan import ScanData
 
-    params = dict(params, num_particles=50, global_localization=False, adaptive_particles=False,
-                  update_min_distance=0.0, update_min_angle=0.0)
-    loc = Localizer(Parameters(params))
+    params = Parameters(dict(params), num_particles=50, global_localization=False, adaptive_particles=False,
+                        update_min_distance=0.0, update_min_angle=0.0)
+    loc = Localizer(params)
     occupancy_map = tiny_map()
     # the sensor model's own preparation (ensure_compiled points this process's table cache at a scratch
     # folder and leaves the compiling to it)
     loc.set_map(occupancy_map, loc.prepare_ray_caster(occupancy_map))
-    loc.set_initial_pose(np.array([1.0, 1.0, 0.0]), stamp=0.0)
-    loc.on_odometry(TwistData(0.0, 0.5, 0.0, 0.1))
-    loc.on_odometry(TwistData(0.02, 0.5, 0.0, 0.1))
+    speed, turn = 0.5, 0.1
+    loc.set_initial_pose(np.array([0.8, 0.8, 0.0]), np.diag([1e-4, 1e-4, 1e-5]), stamp=0.0)
     n = 1081
-    ranges = np.full(n, 1.0)
-    inc = 4.71238898 / (n - 1)
-    loc.on_scan(ScanData(0.02, ranges, -2.35619449, 2.35619449, inc, 0.02, 30.0))
+    angles = np.linspace(-2.35619449, 2.35619449, n)
+    caster = ExactRayCaster(occupancy_map, 25.0)
+    for k in range(31):
+        t = 0.02 * k
+        loc.on_odometry(TwistData(t - params.odom_time_offset, speed, 0.0, turn))
+        if k % 5 == 2:  # a scan between odometry messages, swept over 25 ms
+            heading = turn * t
+            pose = np.array([0.8 + speed * t * np.cos(heading / 2), 0.8 + speed * t * np.sin(heading / 2), heading])
+            laser = pose + np.array([params.laser_offset_x * np.cos(heading), params.laser_offset_x * np.sin(heading),
+                                     params.laser_offset_yaw])
+            ranges = caster.cast(laser[None], angles)[0]
+            loc.on_scan(ScanData(t, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 30.0,
+                                 time_increment=0.025 / n))
+    loc.flush()
 
 
 def main(argv=None) -> int:
