@@ -26,6 +26,7 @@ setup(
         "scipy>=1.10,<2",
         "numba>=0.58,<1",  # optional at run time (numpy fallbacks), but the speed figures need it
         "rosbags>=0.10,<0.12",
+        "apsw>=3.40",  # rosbags' SQLite reader: its errors are told apart from other failures (bags/reader.py)
         "PyYAML>=6,<7",
         "matplotlib>=3.7,<4",
         "pillow>=9,<14",

@@ -45,6 +45,9 @@ def test_the_feed_logs_what_the_rule_publishes_and_keeps_the_newest_pose_of_an_i
         def take_corrections(self):
             return []
 
+        def take_costs(self):
+            return []
+
     estimates = [_estimate(t, x=k) for k, t in enumerate(OFFERED)]
     feeder = Feeder(OdometryOnly(estimates))
     for _ in estimates:
