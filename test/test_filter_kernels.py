@@ -113,3 +113,17 @@ def test_the_agreement_equals_its_numpy_reference():
         scored += bool(fast > 0)
     assert scored > 20
     assert np.isnan(scorer.score(poses[0], np.full(10, np.inf), angles[:10], 0.06, 10.0))
+
+
+def test_the_motion_noise_factor_equals_its_numpy_reference():
+    """MotionModel's noise factor (eigenvectors × √eigenvalues, compiled) is numpy's, bit for bit."""
+    from localization.core.models.motion import noise_factor, noise_factor_numpy
+    rng = np.random.default_rng(1)
+    for k in range(500):
+        m = rng.normal(size=(3, 3))
+        cov = m @ m.T * 10 ** rng.uniform(-9, 0)
+        if k % 5 == 0:  # a still axis, and rounding below zero
+            cov[2, :] = cov[:, 2] = 0.0
+        factor = noise_factor(cov)
+        assert np.array_equal(factor, noise_factor_numpy(cov))
+        np.testing.assert_allclose(factor @ factor.T, cov, rtol=1e-9, atol=1e-12 * np.abs(cov).max())

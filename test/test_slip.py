@@ -129,3 +129,25 @@ def test_a_skid_is_followed_with_the_grip_limit_and_lost_without():
         end[a] = float(err.ct_error[err.t > brake + 1.2].mean())
     assert end[0.0] > 1.0  # the odometry's stop is believed: the estimate stays metres behind
     assert end[1.5] < 0.1
+
+
+@pytest.mark.parametrize("max_acceleration", [0.0, 6.0])
+def test_the_compiled_pieces_equal_their_numpy_reference(max_acceleration):
+    """OdometryBuffer.slip_segments (one compiled pass) and slip_segments_numpy: the same pieces, twists and slips,
+    bit for bit, for spans inside, across and beyond the history (extrapolated), braking and spinning."""
+    rng = np.random.default_rng(3)
+    buf = OdometryBuffer(time_offset=0.129, speed_scale=1.05, extrapolation=0.5, max_acceleration=max_acceleration)
+    t, v = 10.0, 2.0
+    for _ in range(60):
+        t += rng.uniform(0.01, 0.03)
+        v = max(0.0, v + rng.choice([-1.5, 0.0, 0.0, 1.2]))  # sudden stops and spins: slips
+        buf.add(TwistData(t, v, rng.normal(0, 0.05), rng.normal(0, 0.3)))
+    t0, t1 = buf.oldest, buf.latest
+    spans = [(t0 + 0.1, t0 + 0.13), (t0 - 0.7, t0 + 0.2), (t1 - 0.05, t1 + 0.3), (t1 + 0.1, t1 + 0.9),
+             (t0 - 2.0, t1 + 2.0), (t0 + 0.2, t0 + 0.2)] + [tuple(sorted(rng.uniform(t0 - 0.6, t1 + 0.6, 2)))
+                                                             for _ in range(50)]
+    for a, b in spans:
+        fast, ref = buf.slip_segments(a, b), buf.slip_segments_numpy(a, b)
+        for x, y in zip(fast, ref):
+            assert x.shape == y.shape and np.array_equal(x, y)
+    assert (buf.slip_segments(t0, t1)[2] != 0).any() == (max_acceleration > 0)

@@ -32,6 +32,8 @@ log = logging.getLogger(__name__)
 
 _MOTION = [("localization.core.models.motion", "_move_kernel"),
            ("localization.core.models.motion", "_covariance_kernel"),
+           ("localization.core.models.motion", "_factor_kernel"),
+           ("localization.core.odometry", "slip_segments_kernel"),
            ("localization.core.filter.resampling", "resample_kernel"),
            ("localization.core.filter.kernels", "weigh_kernel"),
            ("localization.core.filter.kernels", "estimate_kernel"),
@@ -39,6 +41,8 @@ _MOTION = [("localization.core.models.motion", "_move_kernel"),
 _TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
           ("localization.core.raycast.kernels", "chessboard_kernel")]
 _BEAM = [("localization.core.models.beam_kernels", "fused_kernel")]
+_BEAM_SKIP = [("localization.core.models.beam_kernels", "skip_votes"),
+              ("localization.core.models.beam_kernels", "masked_sum")]
 _RANGE_SCALE = [("localization.core.models.beam_kernels", "cast_rows"),
                 ("localization.core.localizer.range_scale", "fit_step_kernel")]
 _LIKELIHOOD_FIELD = [("localization.core.models.likelihood_field", "_lf_kernel")]
@@ -53,7 +57,8 @@ def kernels_for(params) -> list[tuple[str, str]]:
     if params.sensor_model == "likelihood_field":
         return _MOTION + _LIKELIHOOD_FIELD + (_BEAMSKIP if params.do_beamskip else [])
     if params.ray_caster in ("lookup_table", "lookup_table_exact"):
-        return _MOTION + _TABLE + _BEAM + (_RANGE_SCALE if params.range_scale_estimation else [])
+        return (_MOTION + _TABLE + _BEAM + (_RANGE_SCALE if params.range_scale_estimation else [])
+                + (_BEAM_SKIP if params.do_beamskip else []))
     return _MOTION
 
 

@@ -140,7 +140,7 @@ class CostBudget:
 #: (the estimate and its ± steps in x, y, θ) per Gauss–Newton step, 2 steps; beam_skip: its look at the
 #: columns of every particle the filter weighed; tempered: at most initial_update_stages − 1 extra stages.
 BUDGET = CostBudget(
-    extras=(("agreement", 3, 0, 0), ("range_scale", 14, 0, 0), ("beam_skip", 0, 0, 8), ("tempered", 0, 7, 0)),
+    extras=(("agreement", 3, 0, 0), ("range_scale", 14, 0, 0), ("beam_skip", 0, 0, 2), ("tempered", 0, 7, 0)),
     passes=60, passes_per_stage=20, pass_caps=(("tempered", 180, 180),))
 
 

@@ -42,6 +42,11 @@ import numpy as np
 
 from localization.core.geometry import integrate_twist, inverse
 
+try:  # the pieces cut in one compiled pass when numba is there (pinned); the numpy reference otherwise
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
+
 
 @dataclass
 class TwistData:
@@ -152,7 +157,20 @@ class OdometryBuffer:
     def slip_segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``segments`` and each piece's slip (P, 2): the mean (m) and the variance (m²) of how much
         farther forward the robot went than its twist says (the module docstring; 0 where the twist is
-        extrapolated or unknown)."""
+        extrapolated or unknown). Compiled (``slip_segments_kernel``) when numba is there."""
+        if not t1 > t0:
+            return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2))
+        if slip_segments_kernel is None or not self._t:
+            return self.slip_segments_numpy(t0, t1)
+        stamps, twist_rows, slip_rows, slipped_rows = self._as_arrays()
+        size = stamps.size + 3  # at most every cut inside, plus the two ends
+        dts, twists, slips = np.empty(size), np.empty((size, 3)), np.empty((size, 2))
+        count = slip_segments_kernel(stamps, twist_rows, slip_rows, slipped_rows, self.extrapolation,
+                                     self.max_acceleration > 0.0, float(t0), float(t1), dts, twists, slips)
+        return dts[:count], twists[:count], slips[:count]
+
+    def slip_segments_numpy(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``slip_segments`` in numpy: the reference of the compiled kernel."""
         if not t1 > t0:
             return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2))
         stamps, twist_rows, slip_rows, slipped_rows = self._as_arrays()
@@ -205,3 +223,45 @@ class OdometryBuffer:
             th = (th + dth + math.pi) % (2.0 * math.pi) - math.pi  # geometry.wrap_angle
             th = th + 2.0 * math.pi if th <= -math.pi else th
         return np.array([x, y, th])
+
+
+if njit is not None:
+    @njit(cache=True, nogil=True)
+    def slip_segments_kernel(stamps, twist_rows, slip_rows, slipped_rows, extrapolation, with_slip, t0, t1, dts,
+                             twists, slips):  # pragma: no cover - compiled
+        """``OdometryBuffer.slip_segments_numpy`` in one pass over the cuts, the same arithmetic: the pieces of
+        [t0, t1] (t0 < t1) into ``dts``, ``twists``, ``slips`` (room for every stamp + 3); returns their count."""
+        n = stamps.size
+        first, last = stamps[0] - extrapolation, stamps[n - 1] + extrapolation
+        count = 0
+        start = t0
+        for c in range(n + 3):  # the cuts inside (t0, t1), then t1
+            if c == n + 2:
+                end = t1
+            else:
+                cut = first if c == 0 else (last if c == n + 1 else stamps[c - 1])
+                if not (cut > t0 and cut < t1):
+                    continue
+                end = cut
+            dt = end - start
+            if dt > 0:
+                mid = 0.5 * (start + end)
+                k = np.searchsorted(stamps, mid)  # side "left"
+                k = n - 1 if k > n - 1 else k
+                dts[count] = dt
+                known = mid > first and mid < last
+                for j in range(3):
+                    twists[count, j] = twist_rows[k, j] if known else 0.0
+                slips[count, 0] = 0.0
+                slips[count, 1] = 0.0
+                if with_slip and known and mid > stamps[0] and mid <= stamps[n - 1]:  # a period the odometry reported
+                    speed = slip_rows[k]
+                    a0 = slipped_rows[k] + abs(speed) * (start - stamps[k - 1])
+                    a1 = a0 + abs(speed) * dt
+                    slips[count, 0] = 0.5 * speed * dt
+                    slips[count, 1] = 0.25 * (a1 * a1 - a0 * a0)
+                count += 1
+            start = end
+        return count
+else:  # pragma: no cover
+    slip_segments_kernel = None

@@ -65,7 +65,7 @@ import numpy as np
 
 from localization.core.cost import CostMeter
 from localization.core.geometry import compose
-from localization.core.models.beam_kernels import cast_rows, fused_kernel, fused_kernel_parallel
+from localization.core.models.beam_kernels import cast_rows, fused_kernel, fused_kernel_parallel, masked_sum, skip_votes
 from localization.core.models.sensor import (
     LaserMount,
     Preparation,
@@ -149,8 +149,8 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
 
 
 SKIP_CHECK_PASSES = 6  # numpy passes of skips_beams over the cloud: isfinite, all, the selection, the std
-SKIPPED_SUM_PASSES = 8  # numpy passes of _skipped_sum over the (N, B) columns: copy, difference, abs, compare,
-# the votes, the used columns, the table gather, the sum
+SKIPPED_SUM_PASSES = 8  # numpy passes of _skipped_sum_numpy over the (N, B) columns: copy, difference, abs,
+# compare, the votes, the used columns, the table gather, the sum (compiled: 2, the votes and the sum)
 
 MIN_PARTICLES_PER_THREAD = 256  # fewer particles per thread: the threads' start costs more than they save
 
@@ -192,6 +192,7 @@ class BeamModel(LaserMount):
         self.last_beams_used: int | None = None  # beams used by the last evaluation (do_beamskip leaves some out)
         self.cost = CostMeter()  # beam skipping's extra work (``core.cost``; a localizer shares its meter)
         self._rows = None  # the log table rows of the last scan's beams (an array reused)
+        self._cols = None  # beam skipping: each particle's table columns (an array reused)
         self.precompute_sensor_model()
         if occupancy_map is not None:
             self.set_map(occupancy_map)
@@ -443,7 +444,9 @@ class BeamModel(LaserMount):
             du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
             dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
         skip = self._skips(particles)
-        cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
+        cols = self._cols
+        if cols is None or cols.shape != (particles.shape[0] if skip else 0, angles.size):
+            cols = self._cols = np.empty((particles.shape[0] if skip else 0, angles.size), dtype=np.int32)
         args = (particles, float(ox), float(oy), float(oth), *self.ray_caster.kernel_args(angles), du, dv,
                 1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
         threads = kernel_threads(p.num_threads, particles.shape[0])
@@ -452,7 +455,7 @@ class BeamModel(LaserMount):
         else:
             fused_kernel(*args)
         if skip:
-            return self._skipped_sum(log_rows, z, cols, np.isfinite(out))
+            return self._skipped_sum(log_rows, z, cols, out)
         self.last_beams_used = angles.size
         return out
 
@@ -462,7 +465,19 @@ class BeamModel(LaserMount):
             self.cost.sweep("beam_skip", SKIP_CHECK_PASSES)
         return skips_beams(particles, self.params)
 
-    def _skipped_sum(self, log_rows, z, cols, valid) -> np.ndarray:
+    def _skipped_sum(self, log_rows, z, cols, out) -> np.ndarray:
+        """``_skipped_sum_numpy`` in two compiled passes over the columns (the votes, the sum over the used
+        beams), written into ``out`` (the fused kernel's: finite for the particles that can see)."""
+        p = self.params
+        self.cost.cast("beam_skip", 2 * cols.size)
+        votes = np.empty(z.size, dtype=np.int64)
+        skip_votes(cols, z, p.beam_skip_distance / p.table_resolution, out, votes)
+        used = beam_mask(p, votes, int(np.count_nonzero(np.isfinite(out))))
+        self.last_beams_used = int(used.sum())
+        masked_sum(log_rows, cols, used, float(p.squash_factor), out)
+        return out
+
+    def _skipped_sum_numpy(self, log_rows, z, cols, valid) -> np.ndarray:
         """Squashed log weights (N,) over the beams beam skipping uses (module docstring): ``log_rows`` (B, k + 1),
         ``z`` (B,) measured rows, ``cols`` (N, B) expected columns, ``valid`` (N,) particles that can see."""
         p = self.params
@@ -483,7 +498,7 @@ class BeamModel(LaserMount):
         d = self.to_cells(self.expected_ranges(particles, angles, offsets), k)
         bad = self.map.is_occupied_or_outside(particles[:, :2])
         if self._skips(particles):
-            return self._skipped_sum(self.log_table(k)[z], z, d, ~bad)
+            return self._skipped_sum_numpy(self.log_table(k)[z], z, d, ~bad)
         log_w = self.log_table(k)[z[None, :], d].sum(axis=1) / self.params.squash_factor
         log_w[bad] = -np.inf
         self.last_beams_used = z.size

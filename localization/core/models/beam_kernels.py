@@ -131,10 +131,35 @@ if HAVE_NUMBA:
             for b in range(n_beams):
                 out[i, b] = cells[b] * resolution
 
+    @njit(cache=True, nogil=True)
+    def skip_votes(cols, z, threshold, out, votes):  # pragma: no cover - compiled
+        """Beam skipping's counts: votes[b] = the particles that can see (``out`` finite) whose table column of
+        beam b lies within ``threshold`` cells of the measured row z[b] (``BeamModel._skipped_sum_numpy``)."""
+        votes[:] = 0
+        for i in range(cols.shape[0]):
+            if not math.isfinite(out[i]):
+                continue
+            for b in range(cols.shape[1]):
+                if abs(cols[i, b] - z[b]) <= threshold:
+                    votes[b] += 1
+
+    @njit(cache=True, nogil=True)
+    def masked_sum(log_rows, cols, used, squash_factor, out):  # pragma: no cover - compiled
+        """out[i] = Σ over the ``used`` beams of log_rows[b, cols[i, b]] / squash_factor for the particles that
+        can see (``out`` finite); the others stay −inf."""
+        for i in range(cols.shape[0]):
+            if not math.isfinite(out[i]):
+                continue
+            total = 0.0
+            for b in range(cols.shape[1]):
+                if used[b]:
+                    total += log_rows[b, cols[i, b]]
+            out[i] = total / squash_factor
+
     # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
     from localization.core.compile_cache import drop_if_older
     from localization.core.raycast import kernels as _kernels
     for _kernel in (fused_rows, fused_kernel, fused_kernel_parallel, cast_rows):
         drop_if_older(_kernel, _kernels.__file__)
 else:  # pragma: no cover
-    fused_kernel = fused_kernel_parallel = cast_rows = None
+    fused_kernel = fused_kernel_parallel = cast_rows = skip_votes = masked_sum = None

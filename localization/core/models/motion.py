@@ -257,8 +257,7 @@ class MotionModel:
                 u[0] += slip
                 cov = cov + np.diag([max(slip_var, 0.0), 0.0, 0.0])
             if cov.any():
-                vals, vecs = np.linalg.eigh(cov)
-                factor = vecs * np.sqrt(np.clip(vals, 0.0, None))  # factor @ factor.T == cov
+                factor = noise_factor(cov)  # factor @ factor.T == cov
                 if noise_out is not None and noise_out.shape == (n, 3):
                     noise = self.rng.standard_normal(out=noise_out)  # the draws of standard_normal((n, 3))
                 else:
@@ -271,6 +270,20 @@ class MotionModel:
         else:
             move_reference(particles, u, noise, factor, out)
         return out
+
+
+def noise_factor(cov) -> np.ndarray:
+    """F (3, 3) with F Fᵀ = ``cov``: its eigenvectors scaled by the square roots of its eigenvalues (negative
+    rounding clipped); compiled (``_factor_kernel``, numba's eigh is numpy's LAPACK routine: the same bits)."""
+    if _factor_kernel is not None:
+        return _factor_kernel(np.ascontiguousarray(cov, dtype=float))
+    return noise_factor_numpy(cov)
+
+
+def noise_factor_numpy(cov) -> np.ndarray:
+    """``noise_factor`` in numpy: the reference of the compiled kernel."""
+    vals, vecs = np.linalg.eigh(cov)
+    return vecs * np.sqrt(np.clip(vals, 0.0, None))
 
 
 def covariance_reference(vx: float, vy: float, w: float, beta: float, qa: float, qc: float, qt: float) -> np.ndarray:
@@ -369,6 +382,17 @@ if njit is not None:
                 cov[i, k] = m
                 cov[k, i] = m
         return cov
+    @njit(cache=True, nogil=True)
+    def _factor_kernel(cov):  # pragma: no cover - compiled
+        """As ``noise_factor_numpy``."""
+        vals, vecs = np.linalg.eigh(cov)
+        out = np.empty((3, 3))
+        for j in range(3):
+            root = math.sqrt(vals[j]) if vals[j] > 0.0 else 0.0
+            for i in range(3):
+                out[i, j] = vecs[i, j] * root
+        return out
 else:  # pragma: no cover
     _move_kernel = None
     _covariance_kernel = None
+    _factor_kernel = None
