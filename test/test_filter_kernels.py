@@ -127,3 +127,20 @@ def test_the_motion_noise_factor_equals_its_numpy_reference():
         factor = noise_factor(cov)
         assert np.array_equal(factor, noise_factor_numpy(cov))
         np.testing.assert_allclose(factor @ factor.T, cov, rtol=1e-9, atol=1e-12 * np.abs(cov).max())
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_the_pieces_in_one_pass_move_as_piece_by_piece(deterministic):
+    """MotionModel.evaluate_pieces (one compiled pass) moves a cloud as evaluate() piece by piece, bit for bit, with
+    the same draws: standing pieces (no noise), slips, turns, the heading wrapping."""
+    from localization.core.models.motion import MotionModel
+    particles, _ = cloud(n=500, seed=3)
+    pieces = np.array([[0.04, 0.0, 0.01], [0.0, 0.0, 0.0], [0.05, 0.002, -0.3], [0.03, 0.0, 3.0]])
+    slips = np.array([[0.0, 0.0], [0.0, 0.0], [0.01, 1e-4], [0.0, 0.0]])
+    one, many = (MotionModel(deterministic, np.random.default_rng(9)) for _ in range(2))
+    ref = particles.copy()
+    for piece, (slip, var) in zip(pieces, slips):
+        one.evaluate(ref, piece, out=ref, slip=slip, slip_var=var)
+    fast = many.evaluate_pieces(particles, pieces, slips, noise_out=np.empty((4, 500, 3)))
+    assert np.array_equal(fast, ref)
+    assert one.rng.random() == many.rng.random()  # the same number of draws

@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 _MOTION = [("localization.core.models.motion", "_move_kernel"),
            ("localization.core.models.motion", "_covariance_kernel"),
            ("localization.core.models.motion", "_factor_kernel"),
+           ("localization.core.models.motion", "_move_pieces_kernel"),
            ("localization.core.odometry", "slip_segments_kernel"),
            ("localization.core.filter.resampling", "resample_kernel"),
            ("localization.core.filter.kernels", "weigh_kernel"),

@@ -194,6 +194,17 @@ class MonteCarloLocalizer:
                                    noise_out=self._spare("noise", (n, 3)))
         self.cost.sweep("motion", MOTION_PASSES)
 
+    def motion_updates(self, pieces, slips) -> None:
+        """``motion_update`` of each odometry piece (P, 3) in turn with its slip (P, 2), in one compiled pass over
+        the particles (``MotionModel.evaluate_pieces``: the same draws and arithmetic)."""
+        n, count = len(self.particles), len(pieces)
+        if count == 0:
+            return
+        noisy = count if not self.motion_model.deterministic else 0
+        noise = self._spare("noise_pieces", (noisy, n, 3)) if noisy else None
+        self.motion_model.evaluate_pieces(self.particles, pieces, slips, out=self.particles, noise_out=noise)
+        self.cost.sweep("motion", count + 1)  # a draw per noisy piece, one compiled move
+
     def shift(self, delta) -> None:
         """Move every particle by the robot-frame delta exactly (no noise), e.g. back in time."""
         self.particles = compose(self.particles, np.asarray(delta, dtype=float).reshape(3))

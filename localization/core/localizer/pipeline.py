@@ -155,10 +155,13 @@ class ScanPipeline:
                 for cloud in clouds:
                     cloud.shift(inverse(self.timeline.motion(t, t_from)))
             dts, twists, slips = self.timeline.slip_segments(t_from, t)
-            for delta, (slip, slip_var) in zip(integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts),
-                                               slips):
-                for cloud in clouds:
-                    cloud.motion_update(delta, slip, slip_var)
+            pieces = integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts)
+            if len(clouds) == 1:  # every piece in one pass over the cloud
+                self.pf.motion_updates(pieces, slips)
+            else:  # piece by piece, each cloud in turn: the draws in the order they always came
+                for delta, (slip, slip_var) in zip(pieces, slips):
+                    for cloud in clouds:
+                        cloud.motion_update(delta, slip, slip_var)
         self.t_filter = t
 
     def _gate(self, t_s: float) -> Gate | None:

@@ -248,20 +248,15 @@ class MotionModel:
         ignores them. ``out`` may be ``particles`` itself to update in place; ``noise_out`` (N, 3): an array
         to draw the noise into (the same draws; None: a new one)."""
         particles = np.asarray(particles, dtype=float)
-        u, vx, vy, w = self._piece(odometry)
+        u, factor = self._plan(odometry, slip, slip_var)
         n = particles.shape[0]
-        noise, factor = _NO_NOISE, _NO_FACTOR
-        if not self.deterministic:
-            cov = self._covariance(vx, vy, w)
-            if slip or slip_var:  # a skid (or spin) along the robot's heading at the piece's start
-                u[0] += slip
-                cov = cov + np.diag([max(slip_var, 0.0), 0.0, 0.0])
-            if cov.any():
-                factor = noise_factor(cov)  # factor @ factor.T == cov
-                if noise_out is not None and noise_out.shape == (n, 3):
-                    noise = self.rng.standard_normal(out=noise_out)  # the draws of standard_normal((n, 3))
-                else:
-                    noise = self.rng.standard_normal((n, 3))
+        noise = _NO_NOISE
+        if factor is None:
+            factor = _NO_FACTOR
+        elif noise_out is not None and noise_out.shape == (n, 3):
+            noise = self.rng.standard_normal(out=noise_out)  # the draws of standard_normal((n, 3))
+        else:
+            noise = self.rng.standard_normal((n, 3))
         if out is None:
             out = np.empty_like(particles)
         if _move_kernel is not None and particles.ndim == 2 and particles.shape[1] == 3:
@@ -269,6 +264,48 @@ class MotionModel:
             _move_kernel(particles, u, noise, factor, out)
         else:
             move_reference(particles, u, noise, factor, out)
+        return out
+
+
+    def _plan(self, odometry, slip: float = 0.0, slip_var: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
+        """(u, F): a piece's motion as the robot model allows it (with the slip's mean) and its noise factor
+        (F Fᵀ = Σ(u) with the slip's variance; None: no noise, deterministic or standing)."""
+        u, vx, vy, w = self._piece(odometry)
+        if self.deterministic:
+            return u, None
+        cov = self._covariance(vx, vy, w)
+        if slip or slip_var:  # a skid (or spin) along the robot's heading at the piece's start
+            u[0] += slip
+            cov = cov + np.diag([max(slip_var, 0.0), 0.0, 0.0])
+        return u, (noise_factor(cov) if cov.any() else None)
+
+    def evaluate_pieces(self, particles, pieces, slips, out=None, noise_out=None) -> np.ndarray:
+        """``evaluate`` of each piece (P, 3) in turn with its slip (P, 2: mean, variance), in one compiled pass
+        over the particles: the same noise draws (the noisy pieces', in order, in one call) and the same
+        arithmetic as P calls of ``evaluate``. ``noise_out``: an array (Q, N, 3) or larger to draw into."""
+        particles = np.asarray(particles, dtype=float)
+        n = particles.shape[0]
+        plans = [self._plan(d, s, v) for d, (s, v) in zip(np.asarray(pieces, dtype=float).reshape(-1, 3),
+                                                           np.asarray(slips, dtype=float).reshape(-1, 2))]
+        if out is None:
+            out = np.empty_like(particles)
+        if _move_pieces_kernel is None or particles.ndim != 2:
+            out[...] = particles
+            for (u, factor), (d, s) in zip(plans, zip(pieces, slips)):
+                self.evaluate(out, d, out=out, slip=s[0], slip_var=s[1])
+            return out
+        noisy = [k for k, (_, factor) in enumerate(plans) if factor is not None]
+        if noisy:
+            fits = noise_out is not None and noise_out.shape[0] >= len(noisy) and noise_out.shape[1:] == (n, 3)
+            noise = noise_out[:len(noisy)] if fits else np.empty((len(noisy), n, 3))
+            self.rng.standard_normal(out=noise)  # the draws of one standard_normal((n, 3)) per noisy piece
+        else:
+            noise = np.zeros((0, n, 3))
+        which = np.full(len(plans), -1, dtype=np.int64)
+        which[noisy] = np.arange(len(noisy))
+        us = np.array([u for u, _ in plans]).reshape(-1, 3)
+        factors = np.array([_NO_FACTOR if f is None else f for _, f in plans]).reshape(-1, 3, 3)
+        _move_pieces_kernel(particles, us, factors, noise, which, out)
         return out
 
 
@@ -383,6 +420,37 @@ if njit is not None:
                 cov[k, i] = m
         return cov
     @njit(cache=True, nogil=True)
+    def _move_pieces_kernel(particles, us, factors, noise, which, out):  # pragma: no cover - compiled
+        """``_move_kernel`` of piece p = 0 … P − 1 in turn for each particle (noise[which[p], i]; which[p] < 0:
+        none), in one pass: the same arithmetic."""
+        two_pi = 2.0 * np.pi
+        for i in range(particles.shape[0]):
+            x = particles[i, 0]
+            y = particles[i, 1]
+            th = particles[i, 2]
+            for p in range(us.shape[0]):
+                d0 = us[p, 0]
+                d1 = us[p, 1]
+                d2 = us[p, 2]
+                q = which[p]
+                if q >= 0:
+                    n0 = noise[q, i, 0]
+                    n1 = noise[q, i, 1]
+                    n2 = noise[q, i, 2]
+                    f = factors[p]
+                    d0 = us[p, 0] + (f[0, 0] * n0 + f[0, 1] * n1 + f[0, 2] * n2)
+                    d1 = us[p, 1] + (f[1, 0] * n0 + f[1, 1] * n1 + f[1, 2] * n2)
+                    d2 = us[p, 2] + (f[2, 0] * n0 + f[2, 1] * n1 + f[2, 2] * n2)
+                c = math.cos(th)
+                s = math.sin(th)
+                x, y = x + c * d0 - s * d1, y + s * d0 + c * d1
+                w = (th + d2 + np.pi) % two_pi - np.pi  # as geometry.wrap_angle
+                th = w + two_pi if w <= -np.pi else w
+            out[i, 0] = x
+            out[i, 1] = y
+            out[i, 2] = th
+
+    @njit(cache=True, nogil=True)
     def _factor_kernel(cov):  # pragma: no cover - compiled
         """As ``noise_factor_numpy``."""
         vals, vecs = np.linalg.eigh(cov)
@@ -395,4 +463,4 @@ if njit is not None:
 else:  # pragma: no cover
     _move_kernel = None
     _covariance_kernel = None
-    _factor_kernel = None
+    _factor_kernel = _move_pieces_kernel = None
