@@ -106,3 +106,14 @@ def test_main_is_short():
     import inspect
     assert len(inspect.getsource(cli.main).splitlines()) <= 40
     assert all(len(Path(m.__file__).read_text().splitlines()) <= 500 for m in (cli, jobs, worker))
+
+
+def test_kernels_are_compiled_once_per_kernel_set_before_the_workers(monkeypatch, tmp_path):
+    from localization.core import compile_cache
+    seen = []
+    monkeypatch.setattr(compile_cache, "ensure_compiled", lambda params, logger=None: seen.append(params) or "cached")
+    plan = jobs.plan(_parts(), REPORT_TRIALS, {"random_seed": 0}, tmp_path)
+    worker.compile_kernels(plan)
+    sets = [tuple(compile_cache.kernels_for(p)) for p in seen]
+    assert len(sets) == len(set(sets)) >= 1  # each set once
+    assert set(sets) == {tuple(compile_cache.kernels_for(j.load_parameters())) for j in plan}

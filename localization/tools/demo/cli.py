@@ -86,6 +86,7 @@ def main(argv=None) -> int:
     say(f"{len(tasks)} tasks ({len(parts.calibrated_bags)} calibrations, recordings from the cache or made, "
         f"{len(plan)} replays) on {args.jobs} worker(s) ...")
     seconds: dict = {}
+    worker.compile_kernels(plan)
     try:
         done = schedule.run_tasks(tasks, args.jobs, on_done=lambda k, r, s: progress(k, r, s, seconds, len(tasks)))
     except worker.CalibrationFailed as exc:

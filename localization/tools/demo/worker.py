@@ -68,7 +68,7 @@ def run_job(job: Job) -> Result:
     from localization.eval.replay import ReplayError, ReplayOptions, compute_metrics, run_replay, write_outputs
     t0 = time.perf_counter()
     notes: list = []  # the same laser mount for every replay of a robot: printed once each (``distinct_notes``)
-    with labelled_log(job.label):
+    with labelled_log(job.summary_key):  # bag2@heldout, not only bag2
         try:
             holding = StatusCounter()
             bag = Path(job.bag) if job.bag is not None else Path(record_job((job.trial, job.recording)))
@@ -84,6 +84,20 @@ def run_job(job: Job) -> Result:
         except ReplayError as exc:
             return Result(job, error=str(exc), notes=tuple(notes))
     return Result(job, metrics, seconds=time.perf_counter() - t0, notes=tuple(notes))
+
+
+def compile_kernels(plan: list) -> None:
+    """The compiled kernels every job's parameters use, put into numba's cache once before the workers
+    start (``core.compile_cache.ensure_compiled``: at once when they are there; workers starting cold
+    side by side would each compile them)."""
+    from localization.core.compile_cache import ensure_compiled, kernels_for
+    seen: set = set()
+    for job in plan:
+        params = job.load_parameters()
+        kernels = tuple(kernels_for(params))
+        if kernels not in seen:
+            seen.add(kernels)
+            ensure_compiled(params)
 
 
 def distinct_notes(results: list) -> list:
