@@ -279,7 +279,7 @@ class SwitchWatch:
 
 def _loop_run(job: Job, seed_base: int):
     """A global start or kidnapping fed to the Localizer as ``robustness.run_recording`` feeds it, its switches
-    watched: (recording, comparison with the truth, ``SwitchWatch``, recoveries)."""
+    watched: (recording, comparison with the truth, ``SwitchWatch``, recoveries, published estimates (t, poses))."""
     from localization.core.localizer import Localizer
     from localization.eval import metrics as M
     from localization.eval.feed import Feeder, recording_events
@@ -295,21 +295,24 @@ def _loop_run(job: Job, seed_base: int):
         loc.set_initial_pose(rec.initial_pose, None, t_start)
     watch = SwitchWatch(rec.truth_t, rec.truth_poses, params.global_converged_std)
     est_t, est_poses = Feeder(loc).run(recording_events(rec), on_scan=watch).estimates()
-    return rec, M.compare_to_truth(est_t, est_poses, rec.truth_t, rec.truth_poses), watch, loc.recoveries
+    cmp = M.compare_to_truth(est_t, est_poses, rec.truth_t, rec.truth_poses)
+    return rec, cmp, watch, loc.recoveries, (est_t, est_poses)
 
 
 def run_global(job: Job) -> list:
     from localization.benchmarks.robustness import settle_time
-    rec, cmp, watch, recoveries = _loop_run(job, 100)
+    rec, cmp, watch, recoveries, _ = _loop_run(job, 100)
     return [{"label": job.label, "converged_s": settle_time(cmp, float(rec.odometry.t[0])), "false": watch.false,
              "recoveries": recoveries}]
 
 
 def run_kidnap(job: Job) -> list:
     from localization.benchmarks.robustness import settle_time
-    rec, cmp, watch, recoveries = _loop_run(job, 200)
+    from localization.eval import metrics as M
+    rec, cmp, watch, recoveries, (est_t, est_poses) = _loop_run(job, 200)
     return [{"label": job.label, "back_s": settle_time(cmp, KIDNAP_AT_S), "false": watch.false,
-             "recoveries": recoveries, "switch_m": watch.distances}]
+             "recoveries": recoveries, "switch_m": watch.distances,
+             "jump_after": M.max_jump(est_poses[est_t >= KIDNAP_AT_S])}]
 
 
 RUNNERS = {"rss": run_rss, "pioneer": run_pioneer, "perturbed": run_perturbed, "global": run_global,

@@ -102,6 +102,9 @@ COLUMNS = (
            f"kidnapped runs back below 0.3 m for good within {KIDNAP_WITHIN_S:g} s", count=True),
     Column("kid_s", "Kidnap s", ("kidnap",), median_time("back_s"), "lower",
            "kidnapped runs: median seconds until back below 0.3 m for good (never: inf)", decimals=1),
+    Column("kid_jump", "Kidnap jump", ("kidnap",), max_of("jump_after"), "lower",
+           "kidnapped runs: largest step between consecutive published estimates from the teleport on (m; a switch "
+           "published at once is one step of the whole way)", decimals=2),
     Column("false", "false", GROUPS, sum_of("false"), "lower",
            "false recoveries, summed over the runs: RSS and perturbed, runs of estimates > 1 m from the yardstick or "
            "truth (the replay's); Pioneer, the demo's (> 1 m from the yardstick once converged); global starts and "
