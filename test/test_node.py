@@ -317,6 +317,29 @@ def test_a_scan_waiting_for_odometry_is_run_when_the_odometry_arrives(runner, dr
     assert r.node.localizer.waiting_scans == 0
 
 
+def test_the_laser_pose_decided_on_the_sensor_update_thread_leaves_subscriptions_to_the_executor(runner, drive):
+    """Without TF the first scan (on the sensor-update thread) falls back to the laser_offset_* parameters and stops
+    listening to /tf; the subscription is destroyed on the executor's thread (destroying it on another thread while
+    the executor waits on it raised in the executor and ended the node), and the node goes on localizing."""
+    r = runner(tf_timeout=0.01, diagnostics_period=0.1)
+    lookup = r.node.laser.lookup
+    assert lookup is not None and len(lookup._subs) == 2  # /tf_static and /tf
+    destroyed_on = []
+    destroy = r.node.destroy_subscription
+
+    def recording_destroy(sub):
+        destroyed_on.append(threading.current_thread())
+        return destroy(sub)
+    r.node.destroy_subscription = recording_destroy
+    start_localizing(r, drive)
+    r.play(drive.until(0.5))
+    assert h.wait_until(lambda: r.node.laser.source == "parameters" and len(lookup._subs) == 1, 5.0)
+    assert destroyed_on == [r.thread]  # the executor's thread, not the sensor update's
+    before = r.node.counts["scan"]
+    r.play([e for e in drive.events if 0.5e9 < e[0] - h.T0_NS <= 1.0e9])
+    assert r.node.counts["scan"] > before and r.thread.is_alive()
+
+
 def test_sensor_update_in_the_callback_loses_no_odometry(runner, drive):
     """With ``sensor_update_thread`` false the scan callback runs the sensor update: odometry arriving
     meanwhile waits in its queue and is handled, in order and completely, right after the update."""

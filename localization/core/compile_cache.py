@@ -30,8 +30,9 @@ import time
 
 log = logging.getLogger(__name__)
 
-_MOTION = [("localization.core.models.motion", "_move_kernel"),
-           ("localization.core.models.motion", "_covariance_kernel"),
+# the kernels every scan runs (a recovery's challenger moves piece by piece with _move_kernel: compiled on its first
+# use, as the tempered first update's and the global seeder's numpy passes need none)
+_MOTION = [("localization.core.models.motion", "_covariance_kernel"),
            ("localization.core.models.motion", "_factor_kernel"),
            ("localization.core.models.motion", "_move_pieces_kernel"),
            ("localization.core.odometry", "slip_segments_kernel"),

@@ -119,13 +119,21 @@ class LaserPoseSource:
     """Where the node's laser pose comes from: TF (``base_frame`` -> the scan's frame) when it is
     there; ``tf_timeout`` after the first scan without it, the ``laser_offset_*`` parameters. One
     log line says which; a TF arriving later still replaces the parameters (then /tf is no longer
-    listened to). ``source``: None (not decided yet), "tf" or "parameters"."""
+    listened to). ``source``: None (not decided yet), "tf" or "parameters". ``resolve`` may run on the
+    sensor-update thread; the subscriptions it ends are destroyed by ``tidy`` on the executor's thread
+    (destroying one while the executor waits on it raises in the executor)."""
 
     def __init__(self, node, params, localizer, watchdog):
         self.node, self.params, self.localizer, self.watchdog = node, params, localizer, watchdog
         self.log = node.get_logger()
         self.source: str | None = None
         self.lookup: LaserPoseLookup | None = None
+        self._deferred: list = []  # subscription changes for ``tidy`` (the executor's thread)
+
+    def tidy(self) -> None:
+        """The subscription changes ``resolve`` decided (call on the executor's thread)."""
+        while self._deferred:
+            self._deferred.pop(0)()
 
     def listen(self) -> None:
         """Start looking the pose up in TF (``laser_pose_from_tf``), unless TF gave it already."""
@@ -141,6 +149,7 @@ class LaserPoseSource:
 
     def close(self) -> None:
         """Stop listening to TF (the node is deactivated)."""
+        self.tidy()
         if self.lookup is not None:
             self.lookup.close()
             self.lookup = None
@@ -175,11 +184,12 @@ class LaserPoseSource:
             self.watchdog.tf_ok()
             self.log.info(f"laser pose from TF {p.base_frame} -> {frame_id}: ({pose[0]:.3f}, {pose[1]:.3f}, "
                           f"{pose[2]:.3f})")
-            self.close()
+            lookup, self.lookup = self.lookup, None
+            self._deferred.append(lookup.close)
             return
         first = self.watchdog.first_scan if self.watchdog.first_scan is not None else now
         if self.source is None and now - first >= p.tf_timeout:
             self._use_parameters(f": no TF {why}")
-            self.lookup.stop_dynamic()  # a laser mount is static: only /tf_static from now on
+            self._deferred.append(self.lookup.stop_dynamic)  # a laser mount is static: only /tf_static from now on
             if self.lookup.has_data:  # TF is there but this lookup fails: a broken tree
                 self.watchdog.tf_failed(now, f"{why}; using laser_offset_*")

@@ -320,6 +320,7 @@ class LocalizationMixin:
         return status
 
     def publish_diagnostics(self) -> None:
+        self.laser.tidy()  # the executor's thread: subscriptions the sensor-update thread ended
         self.diagnostics.publish(self.diagnostic_status(), self.outputs.publish_diagnostics)
 
     def persist_pose(self) -> None:
