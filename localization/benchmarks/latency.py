@@ -1,6 +1,7 @@
 """End-to-end latency of the live ``particle_filter`` node: scan stamp → published pose.
 
     python -m localization.benchmarks.latency [--particles 4000] [--duration 20] [--json]
+    python -m localization.benchmarks.latency --car [--duration 60]   (the file's particles and update policy)
     python -m localization.benchmarks.speed --latency-only    (the same, from the speed benchmark)
 
 Starts the node in its own process (``config/real_params.yaml``, ``--particles``, and
@@ -88,28 +89,29 @@ def _peak_rss_mb(pid: int) -> dict:
     return {"node_peak_rss_mb": out.get("VmHWM"), "node_rss_mb": out.get("VmRSS")}
 
 
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time (s) the process has used so far (/proc/PID/stat), None when unreadable."""
+def _cpu_seconds(pid: int, user_only: bool = False) -> float | None:
+    """User + system (``user_only``: user) CPU time (s) the process has used so far (/proc/PID/stat), None when
+    unreadable."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        return (int(fields[11]) + (0 if user_only else int(fields[12]))) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return None
 
 
 class _Sampler(threading.Thread):
-    """Every ``period`` seconds: (seconds since start, the node's RSS in MB, its CPU seconds)."""
+    """Every ``period`` seconds: (seconds since start, the node's RSS in MB, its CPU seconds, its user CPU seconds)."""
 
     def __init__(self, pid: int, period: float = 5.0):
         super().__init__(daemon=True)
         self.pid, self.period = pid, period
-        self.samples: list[tuple[float, float | None, float | None]] = []
+        self.samples: list[tuple[float, float | None, float | None, float | None]] = []
         self.t0 = time.monotonic()
         self.stop = threading.Event()
 
     def sample(self) -> None:
         self.samples.append((time.monotonic() - self.t0, _peak_rss_mb(self.pid)["node_rss_mb"],
-                             _cpu_seconds(self.pid)))
+                             _cpu_seconds(self.pid), _cpu_seconds(self.pid, user_only=True)))
 
     def run(self) -> None:
         self.sample()
@@ -122,7 +124,7 @@ def _windows(lat: np.ndarray, when: np.ndarray, samples, window: float) -> list[
     out = []
     for k in range(int(np.ceil(when.max() / window)) if when.size else 0):
         sel = (when >= k * window) & (when < (k + 1) * window)
-        rss = [r for t, r, _ in samples if r is not None and t <= (k + 1) * window]
+        rss = [r for t, r, *_ in samples if r is not None and t <= (k + 1) * window]
         out.append({"start_s": k * window, "scans": int(sel.sum()),
                     "latency_ms_median": float(np.median(lat[sel])) if sel.any() else None,
                     "latency_ms_p95": float(np.percentile(lat[sel], 95)) if sel.any() else None,
@@ -345,11 +347,13 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
     lat, when = np.asarray(scan_lat), np.asarray(scan_when)
     half = when < np.median(when)
     samples = sampler.samples
-    cpu = [(t, c) for t, _, c in samples if c is not None]
-    rss = [(t, r) for t, r, _ in samples if r is not None]
+    cpu = [(t, c) for t, _, c, _ in samples if c is not None]
+    user = [(t, u) for t, _, _, u in samples if u is not None]
+    rss = [(t, r) for t, r, _, _ in samples if r is not None]
     after_first_minute = [r for t, r in rss if t >= 60.0]
     result.update(
         node_cpu_share=(cpu[-1][1] - cpu[0][1]) / (cpu[-1][0] - cpu[0][0]) if len(cpu) > 1 else None,
+        node_user_cpu_share=(user[-1][1] - user[0][1]) / (user[-1][0] - user[0][0]) if len(user) > 1 else None,
         rss_growth_after_first_minute_mb=(after_first_minute[-1] - after_first_minute[0])
         if len(after_first_minute) > 1 else None,
         windows=_windows(lat, when, samples, window))
@@ -370,7 +374,8 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
 def format_latency(lat: dict) -> str:
     if "error" in lat:
         return f"latency: not measured ({lat['error']})"
-    return (f"latency (live node, {lat['particles']} particles, {lat['ray_caster']}, every scan updating, "
+    policy = "every scan updating" if lat["every_scan"] else "the file's update policy"
+    return (f"latency (live node, {lat['particles']} particles, {lat['ray_caster']}, {policy}, "
             f"{lat['scan_hz']:g} Hz scans + {lat['odom_hz']:g} Hz odometry at real time for {lat['duration_s']:g} s): "
             f"scan stamp -> published pose median {lat['latency_ms_median']:.1f} ms, "
             f"p95 {lat['latency_ms_p95']:.1f} ms, "
@@ -390,7 +395,8 @@ def format_result(r: dict) -> str:
                  f"{r['latency_ms_median_second_half']:.1f} ms (growing = queueing); odometry -> pose median "
                  f"{r['odom_latency_ms_median']:.1f} ms, p95 {r['odom_latency_ms_p95']:.1f} ms over "
                  f"{r['odom_poses']} messages\n  node peak RSS {r['node_peak_rss_mb']:.0f} MB; node CPU "
-                 f"{_pct(r['node_cpu_share'])} of one core (CPU seconds per second of real-time stream); ready "
+                 f"{_pct(r['node_cpu_share'])} of one core (CPU seconds per second of real-time stream; user "
+                 f"{_pct(r.get('node_user_cpu_share'))}); ready "
                  f"{r['node_ready_s']:.1f} s after start; load average {r['load_average_start']:.1f} -> "
                  f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}"
                  f"\n  where the time went inside the node (scan received -> pose published; wait = queued for "
@@ -404,6 +410,9 @@ def format_result(r: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m localization.benchmarks.latency", description=__doc__.split("\n\n")[0])
     ap.add_argument("--particles", type=int, default=4000)
+    ap.add_argument("--car", action="store_true",
+                    help="the parameter file as the car runs it: its particle count and update policy (not every "
+                         "scan updating); for the node's CPU share")
     ap.add_argument("--duration", type=float, default=20.0, help="seconds of stream (default 20)")
     ap.add_argument("--ray-caster", default=None, help="default: the parameter file's",
                     choices=["lookup_table", "lookup_table_exact", "distance_transform", "exact"])
@@ -413,8 +422,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     progress = None if args.json else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    r = measure_latency(args.particles, args.duration, args.ray_caster, args.params, progress=progress,
-                        extra_params=args.extra)
+    r = measure_latency(None if args.car else args.particles, args.duration, args.ray_caster, args.params,
+                        progress=progress, extra_params=args.extra, every_scan=not args.car)
     print(json.dumps(r) if args.json else format_result(r))
     return 1 if "error" in r else 0
 
