@@ -29,11 +29,13 @@ them), so a ``/odom`` vs ``/vesc/odom`` mix-up reads as such.
 Rates and latencies are taken over the last ``window`` seconds (5 s): sensor updates/s = updates
 in the window / window; latency = median and 95th percentile of (pose published − scan received),
 wall clock, and of its parts (waiting for the worker, deserialization, conversion, sensor update,
-publishing).
+publishing). The sensor-update thread records them while the executor's thread reads them for
+/diagnostics: the windows are kept under one lock.
 """
 from __future__ import annotations
 
 import math
+import threading
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
@@ -95,6 +97,8 @@ class Watchdog:
         self.map_detail = ""
         self.tf_failing_since: float | None = None
         self.tf_detail = ""
+        # the sensor-update thread records, the executor's reads: the windows below under one lock
+        self._lock = threading.RLock()
         self._updates: deque = deque()  # (now, {phase: seconds}) of sensor updates
         self._drops: deque = deque()  # (now, count, reason) of scans not used
         self.scans_dropped = 0  # over the whole run
@@ -125,18 +129,20 @@ class Watchdog:
     def sensor_update(self, now: float, phases: dict | None = None) -> None:
         """A sensor-corrected estimate was published; ``phases``: seconds per part of its scan's way
         (``PHASES``), None when unknown (counted in the rate, not in the latency)."""
-        self.sensor_updates += 1
-        self._updates.append((now, dict(phases or {})))
-        if phases:
-            self._run.append(tuple(float(phases.get(k, 0.0)) for k in PHASES))
-        self._trim(now)
+        with self._lock:
+            self.sensor_updates += 1
+            self._updates.append((now, dict(phases or {})))
+            if phases:
+                self._run.append(tuple(float(phases.get(k, 0.0)) for k in PHASES))
+            self._trim(now)
 
     def scans_not_used(self, now: float, count: int, reason: str) -> None:
         """``count`` scans were dropped (not used by the filter) because of ``reason``."""
         if count > 0:
-            self.scans_dropped += count
-            self._drops.append((now, int(count), reason))
-            self._trim(now)
+            with self._lock:
+                self.scans_dropped += count
+                self._drops.append((now, int(count), reason))
+                self._trim(now)
 
     def map_building(self, now: float, detail: str = "") -> None:
         self.last_map = now
@@ -161,21 +167,24 @@ class Watchdog:
         self.tf_detail = detail
 
     def _trim(self, now: float) -> None:
-        while self._updates and self._updates[0][0] < now - self.window:
-            self._updates.popleft()
-        while self._drops and self._drops[0][0] < now - self.window:
-            self._drops.popleft()
+        with self._lock:
+            while self._updates and self._updates[0][0] < now - self.window:
+                self._updates.popleft()
+            while self._drops and self._drops[0][0] < now - self.window:
+                self._drops.popleft()
 
     # ------------------------------------------------------------------ judgement
     def latency(self, now: float) -> dict:
         """{"total": (median, p95), phase: (median, p95)} in seconds over the window (NaN: no update)."""
-        self._trim(now)
+        with self._lock:
+            self._trim(now)
+            updates = list(self._updates)
         out = {}
         for name in ("total",) + PHASES:
             if name == "total":
-                vals = [sum(p.values()) for _, p in self._updates if p]
+                vals = [sum(p.values()) for _, p in updates if p]
             else:
-                vals = [p[name] for _, p in self._updates if name in p]
+                vals = [p[name] for _, p in updates if name in p]
             out[name] = (float(np.median(vals)), float(np.percentile(vals, 95))) if vals else (math.nan, math.nan)
         return out
 
@@ -184,17 +193,21 @@ class Watchdog:
         each part (wait: queued for the sensor-update thread, 0 without one; deserialize: CDR bytes -> LaserScan;
         convert: message -> ScanData and laser pose; update: the Localizer's sensor update +
         resampling; publish: the outputs)."""
-        if not self._run:
+        with self._lock:
+            run = list(self._run)
+        if not run:
             return "no sensor update"
-        a = np.asarray(self._run) * 1e3
+        a = np.asarray(run) * 1e3
         parts = [("total", a.sum(axis=1))] + [(name, a[:, i]) for i, name in enumerate(PHASES)]
         return ", ".join(f"{name} {np.median(v):.1f}/{np.percentile(v, 95):.1f}" for name, v in parts) + \
             f" ms (median/p95 over {len(a)} sensor updates)"
 
     def update_rate(self, now: float) -> float:
-        self._trim(now)
+        with self._lock:
+            self._trim(now)
+            count = len(self._updates)
         span = min(self.window, max(now - self.start, 1e-9))
-        return len(self._updates) / span
+        return count / span
 
     def problems(self, now: float, *, ready: bool = False, waiting_for: str = "", health: float = math.nan,
                  odom_topics=(), scan_topics=(), holding: bool = False) -> list:
@@ -207,9 +220,11 @@ class Watchdog:
             agreement = "" if not math.isfinite(health) else f" (scan-map agreement {health:.2f})"
             out.append(Problem("disagree", WARN, f"scans disagree with the map{agreement}: holding the pose on "
                                "odometry, searching the map for a place the scans fit"))
-        if self._drops:
+        with self._lock:
+            drops = list(self._drops)
+        if drops:
             reasons = Counter()
-            for _, count, reason in self._drops:
+            for _, count, reason in drops:
                 reasons[reason] += count
             text = "; ".join(f"{n} {reason}" for reason, n in reasons.most_common())
             out.append(Problem("scans-dropped", WARN, f"{sum(reasons.values())} scans not used in the last "
