@@ -160,8 +160,8 @@ def jump_figures(est_t, est_poses, settled: float | None, t_start: float, from_p
                 "max_jump_counts": f"no scan fitted the map (agreement >= {SETTLED_AGREEMENT}) after the global start",
                 "max_jump_with_convergence_m": every}
     return {"max_jump_m": max_jump(poses[t >= settled]), "max_jump_from_s": float(settled - t_start),
-            "max_jump_counts": f"from the first scan fitting the map (agreement >= {SETTLED_AGREEMENT}) after the "
-                               "global start",
+            "max_jump_counts": f"the first scan fitting the map, agreement >= {SETTLED_AGREEMENT}, after the global "
+                               "start",
             "max_jump_with_convergence_m": every}
 
 
