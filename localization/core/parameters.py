@@ -243,7 +243,7 @@ PARAMETERS = _grouped(
     Param("scan_theta_discretization", 144, "headings of the range lookup table (144: 2.5 deg)", *_int(8, 2048)),
     Param("range_table_lazy_cells", 10_000_000, "bigger maps build the range table per tile, where needed",
           *_int(0)),
-    Param("sensor_update_thread", True, "run the sensor update on its own thread (odometry never waits)", *_BOOL),
+    Param("sensor_update_thread", False, "run the sensor update on its own thread (odometry never waits)", *_BOOL),
     Param("num_threads", 1, "CPU threads of the beam model's sensor update (the same weights as one thread)",
           *_int(1, 256)),
     "output",
