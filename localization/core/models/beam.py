@@ -65,7 +65,7 @@ import numpy as np
 
 from localization.core.cost import CostMeter
 from localization.core.geometry import compose
-from localization.core.models.beam_kernels import cast_rows, fused_kernel, fused_kernel_parallel, masked_sum, skip_votes
+from localization.core.models import beam_kernels as kernels
 from localization.core.models.sensor import (
     LaserMount,
     Preparation,
@@ -149,8 +149,7 @@ def beam_mixture_table(p: BeamModelParams, k: int) -> np.ndarray:
 
 
 SKIP_CHECK_PASSES = 6  # numpy passes of skips_beams over the cloud: isfinite, all, the selection, the std
-SKIPPED_SUM_PASSES = 8  # numpy passes of _skipped_sum_numpy over the (N, B) columns: copy, difference, abs,
-# compare, the votes, the used columns, the table gather, the sum (compiled: 2, the votes and the sum)
+SKIPPED_SUM_PASSES = 8  # numpy passes of _skipped_sum_numpy over the (N, B) columns (compiled: 2)
 
 MIN_PARTICLES_PER_THREAD = 256  # fewer particles per thread: the threads' start costs more than they save
 
@@ -291,25 +290,10 @@ class BeamModel(LaserMount):
 
     def _compiled_cast(self, angles, offsets):
         """``poses (k, 3) -> (k, B)``: ``expected_ranges(poses, angles, offsets)`` by the fused kernel's own
-        arithmetic (``beam_kernels.cast_rows``)."""
-        angles = np.asarray(angles, dtype=float).ravel()
-        if offsets is None:
-            du = dv = np.zeros(angles.size)
-        else:
-            angles = angles + offsets[:, 2]
-            du = np.ascontiguousarray(offsets[:, 0] / self.map.resolution)  # cells, laser frame
-            dv = np.ascontiguousarray(offsets[:, 1] / self.map.resolution)
-        p, caster = self.params, self.ray_caster
+        arithmetic (``beam_kernels.probe_cast``)."""
+        p = self.params
         laser = (float(p.laser_offset_x), float(p.laser_offset_y), float(p.laser_offset_yaw))
-        args = (*laser, *caster.kernel_args(angles), du, dv, *(np.empty(angles.size) for _ in range(4)))
-
-        def cast(poses) -> np.ndarray:
-            poses = np.ascontiguousarray(np.atleast_2d(np.asarray(poses, dtype=float)))
-            caster.prepare(poses, laser)  # a large map's table: build the tiles in use
-            out = np.empty((poses.shape[0], angles.size))
-            cast_rows(poses, *args, out)
-            return out
-        return cast
+        return kernels.probe_cast(self.ray_caster, laser, self.map.resolution, angles, offsets)
 
     # ------------------------------------------------------------------ the map
     def preparation(self, occupancy_map: OccupancyMap) -> Preparation:
@@ -451,9 +435,9 @@ class BeamModel(LaserMount):
                 1.0 / p.table_resolution, float(k), log_rows, float(p.squash_factor), out, cols)
         threads = kernel_threads(p.num_threads, particles.shape[0])
         if threads > 1:
-            fused_kernel_parallel(threads, *args)
+            kernels.fused_kernel_parallel(threads, *args)
         else:
-            fused_kernel(*args)
+            kernels.fused_kernel(*args)
         if skip:
             return self._skipped_sum(log_rows, z, cols, out)
         self.last_beams_used = angles.size
@@ -471,10 +455,10 @@ class BeamModel(LaserMount):
         p = self.params
         self.cost.cast("beam_skip", 2 * cols.size)
         votes = np.empty(z.size, dtype=np.int64)
-        skip_votes(cols, z, p.beam_skip_distance / p.table_resolution, out, votes)
+        kernels.skip_votes(cols, z, p.beam_skip_distance / p.table_resolution, out, votes)
         used = beam_mask(p, votes, int(np.count_nonzero(np.isfinite(out))))
         self.last_beams_used = int(used.sum())
-        masked_sum(log_rows, cols, used, float(p.squash_factor), out)
+        kernels.masked_sum(log_rows, cols, used, float(p.squash_factor), out)
         return out
 
     def _skipped_sum_numpy(self, log_rows, z, cols, valid) -> np.ndarray:

@@ -163,3 +163,25 @@ if HAVE_NUMBA:
         drop_if_older(_kernel, _kernels.__file__)
 else:  # pragma: no cover
     fused_kernel = fused_kernel_parallel = cast_rows = skip_votes = masked_sum = None
+
+
+def probe_cast(caster, laser, resolution: float, angles, offsets=None):
+    """``poses (k, 3) -> (k, B)``: the beams at ``angles`` (rad; ``offsets`` (B, 3) a deskewed sweep's) cast from
+    the laser (``laser`` = its pose in the robot frame) of each base pose by ``cast_rows``, with ``caster`` (a
+    lookup-table caster; ``resolution``: the map's cell, m)."""
+    angles = np.asarray(angles, dtype=float).ravel()
+    if offsets is None:
+        du = dv = np.zeros(angles.size)
+    else:
+        angles = angles + offsets[:, 2]
+        du = np.ascontiguousarray(offsets[:, 0] / resolution)  # cells, laser frame
+        dv = np.ascontiguousarray(offsets[:, 1] / resolution)
+    args = (*laser, *caster.kernel_args(angles), du, dv, *(np.empty(angles.size) for _ in range(4)))
+
+    def cast(poses) -> np.ndarray:
+        poses = np.ascontiguousarray(np.atleast_2d(np.asarray(poses, dtype=float)))
+        caster.prepare(poses, laser)  # a large map's table: build the tiles in use
+        out = np.empty((poses.shape[0], angles.size))
+        cast_rows(poses, *args, out)
+        return out
+    return cast
