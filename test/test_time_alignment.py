@@ -14,6 +14,7 @@ import localization.sim as S
 from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
 from localization.core.localizer import Localizer
 from localization.core.localizer.pipeline import deskew_offsets
+from localization.core.scan import beam_times
 from localization.core.models.beam import BeamModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import OdometryBuffer, TwistData
@@ -279,12 +280,13 @@ def test_swept_scan_gets_offsets_only_with_sweep_timing():
     scan = _scan(1.10, time_increment=1e-4)
     t_s = loc.scan_time(scan)
     twist = loc._timeline.twist_at(1.09)  # the twist holding at the scan's time
-    offsets = deskew_offsets(scan, t_s, np.arange(101), twist, loc.laser_offset)
+    offsets = deskew_offsets(beam_times(scan, np.arange(101)), t_s, twist, loc.laser_offset)
     assert offsets.shape == (101, 3)
     # the first beam 5 ms before the middle, the last 5 ms after: ∓ 1 cm at 2 m/s
     assert offsets[0, 0] == pytest.approx(-0.01, abs=1e-3) and offsets[-1, 0] == pytest.approx(0.01, abs=1e-3)
     assert offsets[50] == pytest.approx(np.zeros(3), abs=1e-12)
-    assert deskew_offsets(_scan(1.10), t_s, np.arange(101), twist, loc.laser_offset) is None  # no sweep timing
+    assert beam_times(_scan(1.10), np.arange(101)) is None  # no sweep timing
+    assert deskew_offsets(None, t_s, twist, loc.laser_offset) is None
     assert math.isfinite(t_s) and replace(scan, time_increment=1.0).time_increment == 1.0
     assert loc.scan_time(replace(scan, time_increment=1.0)) == scan.stamp  # not a lidar sweep: ignored
 

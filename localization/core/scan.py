@@ -111,6 +111,15 @@ def first_beam_time(scan: ScanData, stamp: str = "first_beam", offset: float = 0
     return t0
 
 
+def beam_times(scan: ScanData, idx, stamp: str = "first_beam", offset: float = 0.0) -> np.ndarray | None:
+    """Each chosen beam's own time t_i = t_0 + i · time_increment (s, scan clock; module doc) for the
+    beam indices ``idx``; None for a scan without usable sweep timing (every beam at the stamp)."""
+    sweep = sweep_increment(scan)
+    if not sweep > 0:
+        return None
+    return first_beam_time(scan, stamp, offset) + np.asarray(idx) * sweep
+
+
 def scan_time(scan: ScanData, stamp: str = "first_beam", offset: float = 0.0) -> float:
     """The time a scan describes (s, scan clock): the middle of its sweep, t_0 + ½ (n − 1) Δ (module
     doc), i.e. the stamp itself for a scan without per-beam timing; also the pose a rigid match of a

@@ -214,8 +214,8 @@ class MonteCarloLocalizer:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
         per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``);
         ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0."""
-        # log of the weighted-mean likelihood (per beam, squashed): used as a health signal
-        mean_ll = self._weigh(self._log_likelihood(ranges, angles, offsets, range_max))
+        log_lik = self._log_likelihood(ranges, angles, offsets, range_max)
+        mean_ll = self._weigh(log_lik)  # log of the weighted-mean likelihood (per beam, squashed): a health signal
         if mean_ll is None:
             return SensorUpdateResult(False, False, 0.0, -np.inf)
         return self._resample_if_due(mean_ll)

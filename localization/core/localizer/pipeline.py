@@ -38,7 +38,7 @@ from localization.core.localizer.seeder import GlobalSeeder
 from localization.core.localizer.timeline import OdometryTimeline, PoseEstimate
 from localization.core.models.sensor import SensorModel
 from localization.core.occupancy_map import OccupancyMap
-from localization.core.scan import ScanData, downsample_scan, first_beam_time, sweep_increment
+from localization.core.scan import ScanData, beam_times, downsample_scan
 
 SKIPPED = Decision(Action.SKIP)
 LEARNS = (Action.TRACK, Action.CONVERGE)  # the range scale is learnt from these updates (tracking)
@@ -63,8 +63,10 @@ class Used:
     cost: UpdateCost = NO_COST
 
 
-def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, angle_step: int = 0):
-    """The downsampled beams of a scan (``num_beams`` evenly spread, or every ``angle_step``-th) and its
+def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, angle_step: int = 0,
+                 stamp: str = "first_beam", stamp_offset: float = 0.0) -> Beams | None:
+    """The downsampled beams of a scan (``num_beams`` evenly spread, or every ``angle_step``-th): their
+    ranges, angles, own times (``core.scan.beam_times``, under the scan_stamp convention) and the scan's
     range limits (None, and a warning, when no beam is valid); unusable limits fall back to [0, the
     sensor model's max range]."""
     rmin, rmax = scan.range_min, scan.range_max
@@ -75,19 +77,17 @@ def usable_beams(scan: ScanData, num_beams: int, model_max_range: float, warn, a
     if not np.isfinite(beams.ranges).any():
         warn("scan-invalid", "scan with no valid range (all NaN, inf or out of limits) ignored")
         return None
-    return beams, rmin, rmax
+    times = beam_times(scan, beams.indices, stamp, stamp_offset)
+    return Beams(beams.ranges, beams.angles, beams.indices, rmin, rmax, times)
 
 
-def deskew_offsets(scan: ScanData, t_s: float, idx, twist, laser_offset, stamp: str = "first_beam",
-                   stamp_offset: float = 0.0):
-    """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each used beam's own time
-    t_b = t_0 + i_b · time_increment (t_0 the first beam's time under the scan_stamp convention), Δ_b
-    the robot's arc under ``twist`` (the odometry's at t_s), L the laser pose; None without sweep timing."""
-    sweep = sweep_increment(scan)
-    if not sweep > 0:
+def deskew_offsets(times, t_s: float, twist, laser_offset):
+    """Per-beam laser motion δ_b = L⁻¹ ⊕ Δ_b ⊕ L (B, 3) from t_s to each used beam's own time t_b
+    (``times``, scan clock), Δ_b the robot's arc under ``twist`` (the odometry's at t_s), L the laser
+    pose; None without sweep timing (``times`` None)."""
+    if times is None:
         return None
-    t0 = first_beam_time(scan, stamp, stamp_offset)
-    robot = integrate_twists(twist[0], twist[1], twist[2], t0 + np.asarray(idx) * sweep - t_s)
+    robot = integrate_twists(twist[0], twist[1], twist[2], times - t_s)
     laser = np.asarray(laser_offset, dtype=float)
     return compose(inverse(laser), compose(robot, laser))
 
@@ -137,7 +137,7 @@ class ScanPipeline:
         beams = self._beams(scan)  # beams
         if beams is None:
             return self._apply(SKIPPED, t_s)
-        offsets = self._deskew(scan, t_s, beams, gate.twist)  # deskew
+        offsets = self._deskew(t_s, beams, gate.twist)  # deskew
         published = self.timeline.pose_at(t_s) if judged else None  # a jump is judged from the published pose
         before = self.pf.snapshot() if published is not None and not self.recovery.holding else None
         estimate = self._weigh(beams, offsets, t_s, gate)  # weigh, resample, estimate (None: impossible)
@@ -176,20 +176,17 @@ class ScanPipeline:
     def _beams(self, scan: ScanData) -> Beams | None:
         """The beams the update uses (None: no valid one); a pending global spread is seeded from them."""
         p = self.params
-        usable = usable_beams(scan, p.num_beams_per_particle, self.model.max_range, self.warn, p.angle_step)
-        if usable is None:
-            return None
-        b, rmin, rmax = usable
-        self.seeder.seed(self.pf, self.map, b.ranges, b.angles, rmax)
-        return Beams(b.ranges, b.angles, b.indices, rmin, rmax)
+        beams = usable_beams(scan, p.num_beams_per_particle, self.model.max_range, self.warn, p.angle_step,
+                             p.scan_stamp, p.scan_stamp_offset)
+        if beams is not None:
+            self.seeder.seed(self.pf, self.map, beams.ranges, beams.angles, beams.range_max)
+        return beams
 
-    def _deskew(self, scan: ScanData, t_s: float, beams: Beams, twist):
+    def _deskew(self, t_s: float, beams: Beams, twist):
         """Each beam's laser motion over the sweep (None: a rigid scan: deskew off, or no sweep timing)."""
-        p = self.params
-        if not (p.deskew and self.model.supports_deskew):
+        if not (self.params.deskew and self.model.supports_deskew):
             return None
-        return deskew_offsets(scan, t_s, beams.indices, twist, self.model.laser_offset, p.scan_stamp,
-                              p.scan_stamp_offset)
+        return deskew_offsets(beams.times, t_s, twist, self.model.laser_offset)
 
     def _weigh(self, beams: Beams, offsets, t_s: float, gate: Gate):
         """The cloud's sensor update, resampled when due (not while holding: the cloud moved on odometry

@@ -98,6 +98,7 @@ class Beams:
     indices: np.ndarray  # which beams of the full scan
     range_min: float  # m
     range_max: float  # m
+    times: np.ndarray | None = None  # s, scan clock: each beam's own time (None: no sweep timing)
 
     @property
     def scored(self) -> tuple:
