@@ -14,14 +14,13 @@ import localization.sim as S
 from localization.core.geometry import compose, integrate_twist, integrate_twists, inverse
 from localization.core.localizer import Localizer
 from localization.core.localizer.pipeline import deskew_offsets
-from localization.core.scan import beam_times
 from localization.core.models.beam import BeamModel
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import OdometryBuffer, TwistData
 from localization.core.parameters import Parameters
 from localization.core.paths import config_dir
 from localization.core.raycast.exact import ExactRayCaster
-from localization.core.scan import ScanData
+from localization.core.scan import ScanData, beam_times
 from localization.eval.datasets import trial_config
 from localization.eval.reference import track_errors
 
