@@ -33,14 +33,10 @@ class Recorder:
     def publish(self, msg):
         self.sent.append(msg)
 
-    send = publish
+    send = send_serialized = publish
 
 
 def _finite_msg(msg) -> bool:
-    if isinstance(msg, bytes):  # the particle cloud is published serialized
-        from geometry_msgs.msg import PoseArray
-        from rclpy.serialization import deserialize_message
-        msg = deserialize_message(msg, PoseArray)
     name = type(msg).__name__
     if name == "Odometry":
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
@@ -52,9 +48,9 @@ def _finite_msg(msg) -> bool:
         vals = [msg.data]
         if not 0.0 <= msg.data <= 1.0:
             return False
-    elif isinstance(msg, list):  # a TF batch
-        vals = [v for tf in msg for v in (tf.transform.translation.x, tf.transform.translation.y,
-                                          tf.transform.rotation.z, tf.transform.rotation.w)]
+    elif name == "TFMessage":
+        vals = [v for tf in msg.transforms for v in (tf.transform.translation.x, tf.transform.translation.y,
+                                                     tf.transform.rotation.z, tf.transform.rotation.w)]
     else:
         raise AssertionError(f"unexpected output {name}")
     return bool(np.all(np.isfinite(np.asarray(vals, dtype=float))))
@@ -79,8 +75,17 @@ def node():
 
 
 def _outputs(n):
+    """Everything the node sent, as messages (the pose, the cloud and TF go out serialized)."""
+    from geometry_msgs.msg import PoseArray
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import deserialize_message
+    from tf2_msgs.msg import TFMessage
+
+    def read(sent, kind):
+        return [deserialize_message(m, kind) if isinstance(m, bytes) else m for m in sent]
     out = n.outputs
-    return [*out.pose_pub.sent, *out.particles_pub.sent, *out.health_pub.sent, *out.tf.sent]
+    return [*read(out.pose_pub.sent, Odometry), *read(out.particles_pub.sent, PoseArray), *out.health_pub.sent,
+            *read(out.tf.sent, TFMessage)]
 
 
 def _clear(n):

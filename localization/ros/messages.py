@@ -27,7 +27,7 @@ UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
 COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
 
 
-def _finite_pose(pose) -> np.ndarray | None:
+def finite_pose(pose) -> np.ndarray | None:
     pose = np.asarray(pose, dtype=float).reshape(-1)
     if pose.size != 3 or not np.all(np.isfinite(pose)):
         return None
@@ -47,6 +47,11 @@ def pose_msg(pose) -> Pose:
 def covariance_6x6(covariance) -> list[float]:
     """The 3×3 (x, y, yaw) covariance as a row-major 6×6 ROS covariance (other entries 0).
     Non-finite input (or the wrong shape) becomes ``UNKNOWN_VARIANCE`` on the x, y, yaw diagonal."""
+    return [float(v) for v in covariance_6x6_array(covariance)]
+
+
+def covariance_6x6_array(covariance) -> np.ndarray:
+    """``covariance_6x6`` as a flat float64 array of 36."""
     out = np.zeros((6, 6))
     cov = None if covariance is None else np.asarray(covariance, dtype=float)
     if cov is None or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
@@ -54,13 +59,13 @@ def covariance_6x6(covariance) -> list[float]:
             out[i, i] = UNKNOWN_VARIANCE
     else:
         out[np.ix_(COV_INDEX, COV_INDEX)] = 0.5 * (cov + cov.T)
-    return [float(v) for v in out.ravel()]
+    return out.ravel()
 
 
 def _stamped(msg, pose, covariance, stamp, frame_id: str):
     """Fill ``msg`` (Odometry or PoseWithCovarianceStamped: both carry a PoseWithCovariance in
     ``.pose``) with the estimate; None if the pose is not finite."""
-    pose = _finite_pose(pose)
+    pose = finite_pose(pose)
     if pose is None:
         return None
     msg.header.stamp = time_msg(stamp)
@@ -134,7 +139,7 @@ def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
 
 def transform_msg(pose, stamp, parent_frame: str, child_frame: str) -> TransformStamped | None:
     """geometry_msgs/TransformStamped parent -> child for a planar pose; None if not finite."""
-    pose = _finite_pose(pose)
+    pose = finite_pose(pose)
     if pose is None:
         return None
     p = pose_msg(pose)

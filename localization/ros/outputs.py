@@ -6,6 +6,9 @@
                         (``publish_corrections``), then the cloud on /pf/particles (at the time of the
                         newest correction published with it) and the health on /pf/health
 
+The pose, odometry, TF and cloud messages are published already serialized (``ros.cdr``,
+``messages.pose_array_cdr``): no Python message object is built per odometry message or scan.
+
 Each stream only moves forward (``core.publish_rule``: an output as old as, or older than, the last
 one on its stream is not published, unless the data's clock went back by more than TIME_JUMP: the
 stream restarts). Odometry and scans may be handled on two threads (``sensor_update_thread``): each
@@ -23,7 +26,7 @@ from std_msgs.msg import Float32
 
 from localization.core.localizer.timeline import PoseEstimate
 from localization.core.publish_rule import ForwardInTime, Verdict
-from localization.ros import messages
+from localization.ros import cdr, messages
 from localization.ros.tf_broadcaster import TransformBroadcaster
 
 ODOM_POSE_TOPIC = "/pf/pose/odom"  # nav_msgs/Odometry (the course's output)
@@ -68,21 +71,21 @@ class Outputs:
         """The pose at an odometry message's time on /pf/pose/odom and TF (stamp est.stamp);
         ``odom_pose``: that message's own pose (map -> odom needs it)."""
         p, stamp = self.params, self.stamps.lookup(est.stamp)
-        msg = messages.odometry_msg(est.pose, est.covariance, stamp, p.map_frame, p.particle_filter_frame)
+        msg = cdr.odometry_cdr(est.pose, est.covariance, stamp, p.map_frame, p.particle_filter_frame)
         if msg is None:
             self.log.warning("non-finite estimate not published", throttle_duration_sec=5.0)
             return
         tf = None
         if self.tf is not None and not self.map_to_odom:
-            tf = messages.transform_msg(est.pose, stamp, p.map_frame, p.particle_filter_frame)
+            tf = cdr.tf_message_cdr(est.pose, stamp, p.map_frame, p.particle_filter_frame)
         elif self.tf is not None and odom_pose is not None:
-            tf = messages.transform_msg(messages.map_to_odom(est.pose, odom_pose), stamp, p.map_frame, p.odom_frame)
+            tf = cdr.tf_message_cdr(messages.map_to_odom(est.pose, odom_pose), stamp, p.map_frame, p.odom_frame)
         with self._odom_lock:  # stamps only move forward (no TF_REPEATED_DATA)
             if not self._admit(self._odom_rule, est.stamp, ODOM_POSE_TOPIC):
                 return
             self.pose_pub.publish(msg)
             if tf is not None:
-                self.tf.send([tf])
+                self.tf.send_serialized(tf)
 
     def publish_corrections(self) -> int:
         """Each sensor-corrected estimate the localizer made since the last call, newer than the
@@ -98,8 +101,8 @@ class Outputs:
                 if not self._pose_rule.judge(est.stamp).published:
                     continue
                 ready = time.monotonic()
-                msg = messages.pose_with_covariance_msg(est.pose, est.covariance, self.stamps.lookup(est.stamp),
-                                                        p.map_frame)
+                msg = cdr.pose_with_covariance_cdr(est.pose, est.covariance, self.stamps.lookup(est.stamp),
+                                                   p.map_frame)
                 if msg is None:
                     self.log.warning("non-finite estimate not published", throttle_duration_sec=5.0)
                     continue

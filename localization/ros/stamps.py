@@ -16,6 +16,12 @@ def time_msg(stamp) -> Time:
     """A ``builtin_interfaces/Time`` from float seconds (or a Time-like message, copied), clamped
     to what the type can carry (rclpy's Python messages accept values that cannot be serialized):
     negative or non-finite times become 0, times beyond int32 seconds the latest stamp."""
+    sec, nanosec = stamp_parts(stamp)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def stamp_parts(stamp) -> tuple[int, int]:
+    """(sec, nanosec) of ``time_msg(stamp)``, without building the message."""
     if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
         sec, nanosec = int(stamp.sec), min(max(int(stamp.nanosec), 0), 999_999_999)
     else:
@@ -25,7 +31,7 @@ def time_msg(stamp) -> Time:
         sec = 0
     elif sec > INT32_MAX:
         sec, nanosec = INT32_MAX, 999_999_999
-    return Time(sec=sec, nanosec=nanosec)
+    return sec, nanosec
 
 
 class StampBook:

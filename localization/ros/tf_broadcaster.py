@@ -96,6 +96,10 @@ class TransformBroadcaster:
         else:
             self._publisher.publish(self._msg_type(transforms=transforms))
 
+    def send_serialized(self, tf_message: bytes) -> None:
+        """Publish a serialized tf2_msgs/TFMessage (``ros.cdr.tf_message_cdr``) on /tf as it is."""
+        self.publisher.publish(tf_message)
+
     def destroy(self) -> None:
         """Destroy the underlying publisher (the node stays alive)."""
         if self.publisher is not None:
