@@ -21,12 +21,13 @@ call into the core and publishes. The parts with a job of their own:
     runtime_parameters  parameters set while the node runs: checked, prepared, applied between updates
     cli                 the command line, spin, SIGINT/SIGTERM
 
-Threading: a SingleThreadedExecutor runs every callback. With ``sensor_update_thread`` (the default)
+Threading: one executor thread runs every callback (``cli.make_executor``). With ``sensor_update_thread``
 the scan callback only queues the message for a sensor-update thread (``scan_worker``), which runs the
 sensor update and publishes the corrections, so the odometry callbacks never wait behind an update: the
 localizer carries each odometry pose under the timeline's own short lock while the update holds its
 lock. Scans that wait in the localizer for the odometry that reaches their time are run on that thread
-as soon as the odometry does (``poke``). Without it the scan callback runs the sensor update (as
+as soon as the odometry does (``poke``). Without it (the default: a seeded node is reproducible bit for
+bit) the scan callback runs the sensor update (as
 nav2_amcl's laser callback does), or the odometry callback that reaches a newer scan's time does, and
 odometry waits in its queue meanwhile (why not rclpy's MultiThreadedExecutor, and the measured costs:
 docs/node.md). Every output is stamped with the time it describes, on the scan clock (``outputs``,
