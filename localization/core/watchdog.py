@@ -45,7 +45,7 @@ OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
 WINDOW_S = 5.0  # seconds over which rates and latencies are computed
 PHASES = ("wait", "deserialize", "convert", "update", "publish")  # parts of the scan -> pose latency
-RUN_MAX = 100_000  # sensor updates kept for the whole-run latency summary (~40 min at 40 Hz)
+RUN_MAX = 100_000  # sensor updates kept for the whole-run latency summary (the last ~40 min at 40 Hz; 2 MB)
 
 
 @dataclass
@@ -102,7 +102,9 @@ class Watchdog:
         self._updates: deque = deque()  # (now, {phase: seconds}) of sensor updates
         self._drops: deque = deque()  # (now, count, reason) of scans not used
         self.scans_dropped = 0  # over the whole run
-        self._run: deque = deque(maxlen=RUN_MAX)  # (wait, convert, update, publish) of every update of the run
+        # (seconds per PHASES part) of the run's last RUN_MAX updates: one array, allocated once (no growth)
+        self._run = np.full((RUN_MAX, len(PHASES)), 0.0, dtype=np.float32)  # written now: no later growth
+        self._run_count = 0  # updates recorded over the run (the newest in row (count - 1) % RUN_MAX)
         self._rejected = 0
 
     # ------------------------------------------------------------------ events
@@ -133,7 +135,8 @@ class Watchdog:
             self.sensor_updates += 1
             self._updates.append((now, dict(phases or {})))
             if phases:
-                self._run.append(tuple(float(phases.get(k, 0.0)) for k in PHASES))
+                self._run[self._run_count % RUN_MAX] = [phases.get(k, 0.0) for k in PHASES]
+                self._run_count += 1
             self._trim(now)
 
     def scans_not_used(self, now: float, count: int, reason: str) -> None:
@@ -194,10 +197,9 @@ class Watchdog:
         convert: message -> ScanData and laser pose; update: the Localizer's sensor update +
         resampling; publish: the outputs)."""
         with self._lock:
-            run = list(self._run)
-        if not run:
+            a = self._run[:min(self._run_count, RUN_MAX)] * 1e3
+        if not len(a):
             return "no sensor update"
-        a = np.asarray(run) * 1e3
         parts = [("total", a.sum(axis=1))] + [(name, a[:, i]) for i, name in enumerate(PHASES)]
         return ", ".join(f"{name} {np.median(v):.1f}/{np.percentile(v, 95):.1f}" for name, v in parts) + \
             f" ms (median/p95 over {len(a)} sensor updates)"

@@ -33,6 +33,7 @@ import functools
 import logging
 import math
 import threading
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -243,19 +244,21 @@ class OdometryTimeline:
 
 
 class Outbox:
-    """Sensor-corrected estimates waiting to be taken (published), oldest first; its own lock, so the
-    node takes them without waiting for a running sensor update."""
+    """Items (sensor-corrected estimates, update costs) waiting to be taken, oldest first; its own lock,
+    so the node takes them without waiting for a running sensor update. It keeps the newest ``size``:
+    what nobody takes does not pile up over a long run."""
 
-    def __init__(self):
+    def __init__(self, size: int = 1000):
         self._lock = threading.Lock()
-        self._items: list[PoseEstimate] = []
+        self._items: deque = deque(maxlen=size)
 
-    def put(self, estimate: PoseEstimate) -> PoseEstimate:
+    def put(self, item):
         with self._lock:
-            self._items.append(estimate)
-        return estimate
+            self._items.append(item)
+        return item
 
-    def take(self) -> list[PoseEstimate]:
+    def take(self) -> list:
         with self._lock:
-            out, self._items = self._items, []
+            out = list(self._items)
+            self._items.clear()
         return out
