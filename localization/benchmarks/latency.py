@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 
 BAG_TOPICS = ("/scan", "/vesc/odom")
+PARKED_ODOMETRY = 5  # still odometry messages (50 Hz) after each bag: its last scan is reached, as on a car
 
 
 def _stamp_ns(stamp) -> int:
@@ -303,6 +304,10 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
                     else:  # keyed by the time its pose describes (µs)
                         odoms_sent[_us(stamp, odom_offset)] = (stamp, streamed + t_rel)
                         pub_odom.publish(msg)
+                for _ in range(PARKED_ODOMETRY):  # the car stops; its odometry goes on, as a VESC's does
+                    time.sleep(0.02)
+                    _set_stamp(still.header, time.time_ns())
+                    pub_odom.publish(still)
                 streamed += min(msgs[-1][0], duration - streamed)
             rounds += 1
         time.sleep(1.0)  # let the last outputs arrive

@@ -5,8 +5,9 @@
 The same set-up as ``localization.benchmarks.latency`` (the node in its own process with
 ``config/real_params.yaml`` and its particle count, every scan updating the filter, the three real
 RACECAR bags streamed at real time, one after the other, round after round). Each message is
-restamped with the wall clock as it is sent, so the node's clock runs on; each bag's start is a jump
-of the car back to that bag's start pose, sent as a new initial pose (as an operator would after
+restamped with the wall clock as it is sent, so the node's clock runs on; after each bag the car stands
+for 0.1 s, its odometry going on (a VESC's does), so the bag's last scan is reached; each bag's start is
+a jump of the car back to that bag's start pose, sent as a new initial pose (as an operator would after
 carrying the car back).
 
 Prints, per ``--window`` minutes of stream: scans, scan stamp → pose latency median and p95, and the
