@@ -349,6 +349,8 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
     breakdown = [line.split("scan -> pose: ", 1)[1].strip() for line in node_log.splitlines()
                  if "scan -> pose: " in line]
     result["node_breakdown"] = breakdown[-1] if breakdown else None
+    counts = [line.split("]: scans: ", 1)[1].split(";", 1)[0] for line in node_log.splitlines() if "]: scans: " in line]
+    result["node_scan_counts"] = counts[-1] if counts else None  # the node's own: received, processed, not used
     lat, when = np.asarray(scan_lat), np.asarray(scan_when)
     half = when < np.median(when)
     samples = sampler.samples

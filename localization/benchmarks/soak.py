@@ -12,9 +12,11 @@ carrying the car back).
 
 Prints, per ``--window`` minutes of stream: scans, scan stamp → pose latency median and p95, and the
 node's resident memory at the window's end; then the memory growth after the first minute, the
-change of p95 latency from the first window to the last, the scans that got no pose (dropped), and
-the node's CPU share. Targets: memory growth ≤ 10 MB after the first minute, the last window's p95
-within 10 % of the first's, no scan dropped.
+change of p95 latency from the first window to the last, the scans that got no pose (dropped), the
+node's own count of the scans it received, processed and did not use (a scan sent but not received was
+lost by the best-effort transport, as a lidar's scans are sent), and the node's CPU share. Targets:
+memory growth ≤ 10 MB after the first minute, the last window's p95 within 10 % of the first's, no
+scan dropped.
 """
 from __future__ import annotations
 
@@ -43,6 +45,8 @@ def format_soak(r: dict) -> str:
                  + "; p95 latency, last window vs first: " + ("n/a" if change is None else f"{100 * change:+.1f} %")
                  + f"; dropped scans (no pose): {r['scans_skipped']} of {r['scans_sent']}; node CPU "
                  + ("n/a" if cpu is None else f"{100 * cpu:.1f} % of one core"))
+    # a scan sent but never received was lost by the (best-effort, as a lidar's) transport, not by the node
+    lines.append(f"  the node's own count: {r.get('node_scan_counts') or 'not reported'}")
     return "\n".join(lines)
 
 
