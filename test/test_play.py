@@ -83,7 +83,7 @@ def test_play_republishes_bag(small_bag):
         spinner = threading.Thread(target=executor.spin, daemon=True)
         spinner.start()
 
-        proc = _play(small_bag, "--rate", RATE, "--start-delay", 2.0, "--end-delay", 0.5)
+        proc = _play(small_bag, "--rate", RATE, "--start-delay", 4.0, "--end-delay", 0.5)  # discovery under load
         assert proc.returncode == 0, proc.stderr
         deadline = time.monotonic() + 3.0
         while time.monotonic() < deadline and (len(received["/scan"]) < N_SCANS or len(received["/odom"]) < N_ODOM):
