@@ -49,30 +49,32 @@ def _pose(buf: bytearray, pose: np.ndarray) -> None:
     buf += struct.pack("<7d", float(pose[0]), float(pose[1]), 0.0, 0.0, 0.0, np.sin(half), np.cos(half))
 
 
-def odometry_cdr(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> bytes | None:
-    """nav_msgs/Odometry of ``messages.odometry_msg``, serialized; None if the pose is not finite."""
+def _stamped_pose(pose, covariance, stamp, frame_id: str, child_frame_id: str | None = None) -> bytearray | None:
+    """Header, (child frame id,) geometry_msgs/PoseWithCovariance: the start of an Odometry or a
+    PoseWithCovarianceStamped; None if the pose is not finite."""
     pose = finite_pose(pose)
     if pose is None:
         return None
     buf = bytearray(ENCAPSULATION)
     _header(buf, stamp, frame_id)
-    _string(buf, child_frame_id)
+    if child_frame_id is not None:
+        _string(buf, child_frame_id)
     _pose(buf, pose)
     buf += covariance_6x6_array(covariance).astype("<f8").tobytes()
-    return bytes(buf + _ZERO_TWIST)
+    return buf
+
+
+def odometry_cdr(pose, covariance, stamp, frame_id: str, child_frame_id: str) -> bytes | None:
+    """nav_msgs/Odometry of ``messages.odometry_msg``, serialized; None if the pose is not finite."""
+    buf = _stamped_pose(pose, covariance, stamp, frame_id, child_frame_id)
+    return None if buf is None else bytes(buf + _ZERO_TWIST)
 
 
 def pose_with_covariance_cdr(pose, covariance, stamp, frame_id: str) -> bytes | None:
     """geometry_msgs/PoseWithCovarianceStamped of ``messages.pose_with_covariance_msg``, serialized;
     None if the pose is not finite."""
-    pose = finite_pose(pose)
-    if pose is None:
-        return None
-    buf = bytearray(ENCAPSULATION)
-    _header(buf, stamp, frame_id)
-    _pose(buf, pose)
-    buf += covariance_6x6_array(covariance).astype("<f8").tobytes()
-    return bytes(buf)
+    buf = _stamped_pose(pose, covariance, stamp, frame_id)
+    return None if buf is None else bytes(buf)
 
 
 def tf_message_cdr(pose, stamp, parent_frame: str, child_frame: str) -> bytes | None:
