@@ -14,7 +14,7 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 
 from localization.core.geometry import compose  # noqa: E402
 from localization.core.occupancy_map import OccupancyMap  # noqa: E402
-from localization.ros import messages
+from localization.ros import cdr, messages
 from localization.ros.conversions import pose_from_msg, stamp_to_sec  # noqa: E402
 from localization.ros.stamps import StampBook  # noqa: E402
 
@@ -44,7 +44,7 @@ def test_non_finite_covariance_is_published_as_unknown():
 
 
 def pose_array(particles, stamp, frame_id, max_count) -> PoseArray:
-    return deserialize_message(messages.pose_array_cdr(particles, stamp, frame_id, max_count), PoseArray)
+    return deserialize_message(cdr.pose_array_cdr(particles, stamp, frame_id, max_count), PoseArray)
 
 
 def test_pose_array_drops_non_finite_particles_and_caps_the_count():
@@ -71,7 +71,7 @@ def test_pose_array_cdr_matches_rclpy_serialization(frame_id, count):
         pose.position.x, pose.position.y = float(x), float(y)
         pose.orientation.z, pose.orientation.w = math.sin(th / 2), math.cos(th / 2)
         expected.poses.append(pose)
-    raw = messages.pose_array_cdr(particles, Time(sec=1_700_000_123, nanosec=456_789_012), frame_id, 100)
+    raw = cdr.pose_array_cdr(particles, Time(sec=1_700_000_123, nanosec=456_789_012), frame_id, 100)
     # rclpy leaves its alignment padding uninitialised: compare the length and the decoded message
     assert len(raw) == len(serialize_message(expected))
     assert deserialize_message(raw, PoseArray) == expected
@@ -125,7 +125,7 @@ def test_out_of_range_stamps_are_clamped_to_what_can_be_serialized(sec, nanosec,
     stamp.sec, stamp.nanosec = sec, nanosec  # rclpy's Python message takes it without a check
     t = messages.time_msg(stamp)
     assert (t.sec, t.nanosec) == expected
-    raw = messages.pose_array_cdr(np.zeros((2, 3)), stamp, "map", 10)
+    raw = cdr.pose_array_cdr(np.zeros((2, 3)), stamp, "map", 10)
     assert deserialize_message(raw, PoseArray).header.stamp == t
     serialize_message(messages.odometry_msg([0.0, 0.0, 0.0], np.eye(3), stamp, "map", "b"))  # does not raise
 
@@ -146,7 +146,6 @@ def test_serialized_outputs_equal_rclpy_serialization_of_the_built_messages(pose
     from nav_msgs.msg import Odometry  # noqa: F401
     from tf2_msgs.msg import TFMessage
 
-    from localization.ros import cdr
     pairs = [(cdr.odometry_cdr(pose, cov, stamp, frame, child), messages.odometry_msg(pose, cov, stamp, frame, child)),
              (cdr.pose_with_covariance_cdr(pose, cov, stamp, frame),
               messages.pose_with_covariance_msg(pose, cov, stamp, frame)),
@@ -160,7 +159,6 @@ def test_serialized_outputs_equal_rclpy_serialization_of_the_built_messages(pose
 
 @pytest.mark.parametrize("bad", [[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [0.0, 0.0, -math.inf]])
 def test_serialized_outputs_of_a_non_finite_pose_are_none(bad):
-    from localization.ros import cdr
     assert cdr.odometry_cdr(bad, np.eye(3), 1.0, "map", "b") is None
     assert cdr.pose_with_covariance_cdr(bad, np.eye(3), 1.0, "map") is None
     assert cdr.tf_message_cdr(bad, 1.0, "map", "b") is None

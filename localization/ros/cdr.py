@@ -1,10 +1,10 @@
 """The node's per-message outputs serialized directly (CDR), without building a Python message.
 
 On every odometry message the node publishes nav_msgs/Odometry and a TF, on every scan a
-PoseWithCovarianceStamped: building those as rclpy message objects (nested Python objects, 36-float
-covariance lists) and having rclpy convert them costs more than composing the pose. These functions
-write the same bytes with ``struct`` and numpy; the node publishes them as they are
-(``publisher.publish(bytes)``). Each equals rclpy's ``serialize_message`` of the message
+PoseWithCovarianceStamped and the particle cloud (PoseArray): building those as rclpy message objects
+(nested Python objects, 36-float covariance lists, a Pose per particle) and having rclpy convert them
+costs more than composing the pose. These functions write the same bytes with ``struct`` and numpy;
+the node publishes them as they are (``publisher.publish(bytes)``). Each deserialises to the message
 ``localization.ros.messages`` builds for the same input (test_messages.py), and returns None where that
 builder does (a non-finite pose).
 
@@ -18,7 +18,7 @@ import struct
 
 import numpy as np
 
-from localization.ros.messages import covariance_6x6_array, finite_pose
+from localization.ros.messages import covariance_6x6_array, finite_pose, select_particles
 from localization.ros.stamps import stamp_parts
 
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
@@ -88,3 +88,21 @@ def tf_message_cdr(pose, stamp, parent_frame: str, child_frame: str) -> bytes | 
     _string(buf, child_frame)
     _pose(buf, pose)
     return bytes(buf)
+
+
+def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
+    """geometry_msgs/PoseArray of (at most ``max_count``, ``messages.select_particles``) particles,
+    serialized: the header, the pose count, then per pose 7 float64 (position x, y, z, orientation x, y,
+    z, w) written with numpy in one array."""
+    p = select_particles(particles, max_count)
+    buf = bytearray(ENCAPSULATION)
+    _header(buf, stamp, frame_id)
+    _align(buf, 4)
+    buf += struct.pack("<I", len(p))
+    if len(p):
+        _align(buf, 8)
+    poses = np.zeros((len(p), 7), dtype="<f8")
+    poses[:, 0:2] = p[:, 0:2]
+    poses[:, 5] = np.sin(0.5 * p[:, 2])
+    poses[:, 6] = np.cos(0.5 * p[:, 2])
+    return bytes(buf) + poses.tobytes()

@@ -4,8 +4,8 @@ They import the message packages but not rclpy, and never emit a NaN or an infin
 
 * ``odometry_msg`` / ``transform_msg`` return ``None`` for a non-finite pose (the caller skips
   publishing); a non-finite covariance becomes "unknown" (``UNKNOWN_VARIANCE`` on the diagonal);
-* ``pose_array_cdr`` (the particle cloud, serialized with numpy: fast) drops non-finite particles
-  and draws at most ``max_count`` of them.
+* ``select_particles`` drops non-finite particles and draws at most ``max_count`` of them (for the
+  cloud, which ``ros.cdr.pose_array_cdr`` serializes).
 
 Stamps are ``builtin_interfaces/Time`` messages or float seconds (see ``time_msg``).
 """
@@ -109,32 +109,6 @@ def select_particles(particles, max_count: int) -> np.ndarray:
     if len(p) > max_count:
         p = p[np.linspace(0, len(p) - 1, max_count).round().astype(np.intp)]
     return p
-
-
-def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
-    """The serialized (CDR, little endian) geometry_msgs/PoseArray of (at most ``max_count``)
-    particles, built with numpy: what the node publishes (``publisher.publish(bytes)``).
-
-    Building hundreds of ``Pose`` objects in Python costs more than a whole sensor update; this
-    costs next to nothing (figures in docs/performance.md). Layout (offsets from the end of the 4-byte
-    encapsulation header): header.stamp int32 sec, uint32 nanosec; header.frame_id uint32
-    length (with the NUL) + bytes + NUL; uint32 pose count; padding to 8; then per pose 7
-    float64: position x, y, z, orientation x, y, z, w (the padding only when a pose follows).
-    """
-    p = select_particles(particles, max_count)
-    t = time_msg(stamp)
-    name = frame_id.encode() + b"\0"
-    body = bytearray(b"\x00\x01\x00\x00")  # CDR_LE encapsulation
-    body += np.array([t.sec], "<i4").tobytes() + np.array([t.nanosec, len(name)], "<u4").tobytes() + name
-    body += b"\0" * (-(len(body) - 4) % 4)
-    body += np.array([len(p)], "<u4").tobytes()
-    if len(p):
-        body += b"\0" * (-(len(body) - 4) % 8)
-    poses = np.zeros((len(p), 7), dtype="<f8")
-    poses[:, 0:2] = p[:, 0:2]
-    poses[:, 5] = np.sin(0.5 * p[:, 2])
-    poses[:, 6] = np.cos(0.5 * p[:, 2])
-    return bytes(body) + poses.tobytes()
 
 
 def transform_msg(pose, stamp, parent_frame: str, child_frame: str) -> TransformStamped | None:

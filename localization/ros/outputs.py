@@ -6,8 +6,8 @@
                         (``publish_corrections``), then the cloud on /pf/particles (at the time of the
                         newest correction published with it) and the health on /pf/health
 
-The pose, odometry, TF and cloud messages are published already serialized (``ros.cdr``,
-``messages.pose_array_cdr``): no Python message object is built per odometry message or scan.
+The pose, odometry, TF and cloud messages are published already serialized (``ros.cdr``): no Python
+message object is built per odometry message or scan.
 
 Each stream only moves forward (``core.publish_rule``: an output as old as, or older than, the last
 one on its stream is not published, unless the data's clock went back by more than TIME_JUMP: the
@@ -121,7 +121,7 @@ class Outputs:
     def publish_particles(self, stamp: float) -> None:
         """The cloud (at most ``max_particles_published``), when anyone listens."""
         if self.params.max_particles_published > 0 and _subscribed(self.particles_pub):
-            self.particles_pub.publish(messages.pose_array_cdr(
+            self.particles_pub.publish(cdr.pose_array_cdr(
                 self.localizer.particles(), self.stamps.lookup(stamp), self.params.map_frame,
                 self.params.max_particles_published))
 
