@@ -1,4 +1,4 @@
-"""The tempered first update after an initial pose (``MonteCarloLocalizer.tempered_update``).
+"""The tempered first update after an initial pose (``MonteCarloLocalizer.sensor_update`` with ``stages`` > 1).
 
 A Gaussian likelihood over a Gaussian initial cloud has a closed-form posterior and evidence:
 the tempered stages must land on them, where one plain update leaves the estimate on the few
@@ -59,7 +59,7 @@ def test_tempered_update_lands_on_the_posterior_where_a_plain_update_does_not():
         assert f.sensor_update(None, None).ok
         plain.append(np.abs(f.estimate().pose - mean) / std)
         f = cloud(seed)
-        result = f.tempered_update(None, None, max_stages=8)
+        result = f.sensor_update(None, None, stages=8)
         assert result.ok and result.resampled
         est = f.estimate()
         tempered.append(np.abs(est.pose - mean) / std)
@@ -76,20 +76,20 @@ def test_tempered_update_lands_on_the_posterior_where_a_plain_update_does_not():
 def test_tempered_update_counts_the_scan_once():
     """The stages' log normalisers sum to the scan's evidence, as one exact update would give it (the
     jitter widens each stage's cloud by (1 + h²): a little below it)."""
-    evidences = [cloud(seed, 5000).tempered_update(None, None, max_stages=8).mean_log_likelihood
+    evidences = [cloud(seed, 5000).sensor_update(None, None, stages=8).mean_log_likelihood
                  for seed in range(4)]
     assert np.median(evidences) == pytest.approx(log_evidence(), abs=0.8)
     # a scan applied twice (β summing to 2) would give a clearly smaller evidence and a narrower cloud
     f = cloud(0, 5000)
-    f.tempered_update(None, None, max_stages=8)
+    f.sensor_update(None, None, stages=8)
     once = np.sqrt(np.diag(f.estimate().covariance))
-    f.tempered_update(None, None, max_stages=8)
+    f.sensor_update(None, None, stages=8)
     assert np.all(np.sqrt(np.diag(f.estimate().covariance)) < 0.85 * once)
 
 
 def test_one_stage_is_the_plain_update():
     a, b = cloud(3), cloud(3)
-    ra, rb = a.sensor_update(None, None), b.tempered_update(None, None, max_stages=1)
+    ra, rb = a.sensor_update(None, None), b.sensor_update(None, None, stages=1)
     assert ra == rb and np.array_equal(a.particles, b.particles)
 
 
@@ -112,7 +112,7 @@ def test_impossible_scan_is_reported_and_the_cloud_kept():
     f = MonteCarloLocalizer(MotionModel(), Impossible(), num_particles=100, rng=1)
     f.initialize_gaussian(PRIOR_MEAN, std=PRIOR_STD)
     before = f.particles.copy()
-    result = f.tempered_update(None, None, max_stages=8)
+    result = f.sensor_update(None, None, stages=8)
     assert not result.ok and np.array_equal(f.particles, before)
     assert np.all(np.isfinite(f.estimate().pose))
 
@@ -127,7 +127,7 @@ def test_a_later_stage_where_every_particle_is_impossible_keeps_the_stages_so_fa
             return ll if Vanishing.calls == 1 else np.full(len(particles), -np.inf)
     f = MonteCarloLocalizer(MotionModel(), Vanishing(), num_particles=500, rng=4)
     f.initialize_gaussian(PRIOR_MEAN, std=PRIOR_STD)
-    result = f.tempered_update(None, None, max_stages=8)
+    result = f.sensor_update(None, None, stages=8)
     assert result.ok and Vanishing.calls == 2 and np.isfinite(result.mean_log_likelihood)
     assert np.all(np.isfinite(f.log_weights)) and np.all(np.isfinite(f.estimate().pose))
     # the first stage moved the cloud toward the peak
@@ -141,7 +141,7 @@ def test_partly_impossible_cloud_keeps_only_possible_particles():
             return np.where(particles[:, 0] < 1.0, -np.inf, ll)  # x < 1 m: inside a wall
     f = MonteCarloLocalizer(MotionModel(), HalfPlane(), num_particles=2000, rng=2)
     f.initialize_gaussian(PRIOR_MEAN, std=PRIOR_STD)
-    assert f.tempered_update(None, None, max_stages=8).ok
+    assert f.sensor_update(None, None, stages=8).ok
     assert np.all(np.isfinite(f.particles)) and np.all(np.isfinite(f.log_weights))
     assert abs(f.estimate().pose[0] - posterior()[0][0]) < 0.03
 

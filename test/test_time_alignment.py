@@ -115,7 +115,7 @@ def test_odometry_during_a_blocked_sensor_update_is_not_lost_and_does_not_wait()
     carried through the whole history (the timeline's short lock, not the localizer's), and nothing is lost."""
     loc = _corridor_localizer()
     before = loc.on_odometry(TwistData(1.0, 0.0, 0.0, 0.0))
-    real_update = loc._pf.tempered_update  # the first update after the initial pose
+    real_update = loc._pf.sensor_update  # the first (tempered) update after the initial pose
     started, release = threading.Event(), threading.Event()
 
     def blocked_update(*args, **kwargs):
@@ -123,7 +123,7 @@ def test_odometry_during_a_blocked_sensor_update_is_not_lost_and_does_not_wait()
         assert release.wait(10.0)
         return real_update(*args, **kwargs)
 
-    loc._pf.tempered_update = blocked_update
+    loc._pf.sensor_update = blocked_update
     result = []
     worker = threading.Thread(target=lambda: result.append(loc.on_scan(_scan(1.0)).estimate))
     worker.start()
@@ -138,7 +138,7 @@ def test_odometry_during_a_blocked_sensor_update_is_not_lost_and_does_not_wait()
     finally:
         release.set()
         worker.join()
-    loc._pf.tempered_update = real_update
+    loc._pf.sensor_update = real_update
     (updated,) = result
     assert updated.stamp == 1.0
     out = loc.on_odometry(TwistData(1.12, 1.0, 0.0, 0.0))  # the update's anchor carried through all of it

@@ -10,7 +10,7 @@ State: N particles (x, y, θ) in the map frame and their log-weights.
                with a KLD sampler (``kld.py``) each resampling also picks N (adaptive count)
     estimate:  weighted mean of x, y; circular mean of θ; weighted covariance (θ wrapped)
 
-A tempered update (``tempered_update``, the first scan after an initial pose) applies the same scan
+A tempered update (``sensor_update`` with ``stages`` > 1, the first scan after an initial pose) applies the same scan
 in stages, as progressive correction (Musso, Oudjane & Le Gland) and tempered SMC do:
 
     stage k:   log w_i ← log w_i + β_k · log p(z | p_i),   β_k the largest step with ESS ≥ ess_target · N
@@ -210,35 +210,24 @@ class MonteCarloLocalizer:
         self.particles = compose(self.particles, np.asarray(delta, dtype=float).reshape(3))
         self.cost.sweep("shift", COMPOSE_PASSES)
 
-    def sensor_update(self, ranges, angles, offsets=None, range_max=None) -> SensorUpdateResult:
+    def sensor_update(self, ranges, angles, offsets=None, range_max=None, stages: int = 1,
+                      ess_target: float = 0.5) -> SensorUpdateResult:
         """Weight particles by the scan, normalise, and resample when the ESS is low. ``offsets``:
         per-beam laser motion of a deskewed sweep (sensor models with ``supports_deskew``);
-        ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0."""
-        log_lik = self._log_likelihood(ranges, angles, offsets, range_max)
-        mean_ll = self._weigh(log_lik)  # log of the weighted-mean likelihood (per beam, squashed): a health signal
-        if mean_ll is None:
-            return SensorUpdateResult(False, False, 0.0, -np.inf)
-        return self._resample_if_due(mean_ll)
-
-    def tempered_update(self, ranges, angles, offsets=None, range_max=None, max_stages: int = 8,
-                        ess_target: float = 0.5) -> SensorUpdateResult:
-        """One scan applied in up to ``max_stages`` tempered stages (module docstring), then resampled as
-        ``sensor_update`` does; ``mean_log_likelihood`` is the sum of the stages' log normalisers (the
-        scan's evidence, as one plain update gives it; the jitter leaves it slightly low).
-        ``max_stages`` 1: ``sensor_update``."""
-        if max_stages <= 1:
-            return self.sensor_update(ranges, angles, offsets, range_max)
+        ``range_max``: the scan's own (m), the sensor model's z_max unless ``laser_max_range`` > 0.
+        ``stages`` > 1: tempered (module docstring): each stage weighs by the largest share β of the
+        scan that keeps the ESS ≥ ``ess_target`` · N, then resamples and jitters; the last stage takes
+        what is left. ``mean_log_likelihood``: the log of the weighted-mean likelihood (per beam,
+        squashed; a health signal), for a tempered update the sum of its stages' (the scan's evidence,
+        as one plain update gives it; the jitter leaves it slightly low)."""
+        stages = max(1, int(stages))
         n_target = ess_target * self.num_particles
         left, evidence = 1.0, 0.0
-        for stage in range(max_stages):
+        for stage in range(stages):
             log_lik = self._log_likelihood(ranges, angles, offsets, range_max, WEIGH if stage == 0 else "tempered")
-            possible = np.isfinite(log_lik)
-            last = stage == max_stages - 1
-            beta = left
-            if not last and possible.any():
-                beta = _tempering_step(self.log_weights, log_lik, possible, left, n_target)
-                self.cost.sweep("tempered", TEMPERING_PASSES)
-            step_ll = self._weigh(np.where(possible, beta * log_lik, -np.inf))
+            last = stage == stages - 1
+            beta = left if last else self._stage_share(log_lik, left, n_target)
+            step_ll = self._weigh(log_lik if beta == 1.0 else np.where(np.isfinite(log_lik), beta * log_lik, -np.inf))
             if step_ll is None:
                 if stage == 0:
                     return SensorUpdateResult(False, False, 0.0, -np.inf)
@@ -249,6 +238,14 @@ class MonteCarloLocalizer:
                 break
             self._resample_regularised(np.exp(self.log_weights))
         return self._resample_if_due(evidence)
+
+    def _stage_share(self, log_lik, left: float, n_target: float) -> float:
+        """A tempered stage's β (``_tempering_step``); ``left`` when no particle can explain the scan."""
+        possible = np.isfinite(log_lik)
+        if not possible.any():
+            return left
+        self.cost.sweep("tempered", TEMPERING_PASSES)
+        return _tempering_step(self.log_weights, log_lik, possible, left, n_target)
 
     def _log_likelihood(self, ranges, angles, offsets, range_max, name: str = WEIGH) -> np.ndarray:
         """The sensor model's log p(z | particle); records the (used, offered) beams of the update and

@@ -194,12 +194,9 @@ class ScanPipeline:
         an initial pose is tempered (``temper_next``, cleared once it succeeded)."""
         if not self.recovery.holding:
             self._weighed = (self.pf.num_particles, int(np.size(beams.ranges)))
-            if not self.temper_next:
-                ok = self.pf.sensor_update(beams.ranges, beams.angles, offsets, range_max=beams.range_max).ok
-            else:
-                ok = self.pf.tempered_update(beams.ranges, beams.angles, offsets, beams.range_max,
-                                             self.params.initial_update_stages).ok
-                self.temper_next = not ok
+            stages = self.params.initial_update_stages if self.temper_next else 1
+            ok = self.pf.sensor_update(beams.ranges, beams.angles, offsets, beams.range_max, stages).ok
+            self.temper_next = self.temper_next and not ok
             if not ok:
                 self.impossible += 1
                 return None
