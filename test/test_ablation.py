@@ -193,3 +193,17 @@ def test_the_switch_watch_scores_each_switch_against_the_truth_and_ignores_re_sp
     loc.recoveries, loc.cloud[:, 0] = 3, [-20.0, 20.0, -5.0, 5.0]  # a re-spread over the map: not a switch
     watch(None, loc)
     assert watch.distances == pytest.approx([0.1, 3.0]) and watch.false == 1
+
+
+def test_the_table_in_the_docs_has_every_mechanism_every_part_and_three_seeds():
+    """docs/ablation.md is the tool's table: a row per mechanism the tool switches, a column group per part,
+    each cell a mean ± spread over seeds 0, 1, 2 (a new mechanism without a row fails here)."""
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[1] / "docs" / "ablation.md").read_text()
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
+    for mechanism in J.MECHANISMS.values():
+        assert mechanism.title in rows, mechanism.title
+    header = rows["row"]
+    for part in ("RSS med", "Pio err", "Pert mean", "Global ok", "Kidnap ok", "ms RSS"):
+        assert part in header, part
+    assert "--seeds 0,1,2" in text and "± " in rows["baseline"]

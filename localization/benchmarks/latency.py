@@ -197,7 +197,7 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
     say(f"starting the node ({particles} particles, {ray_caster}) ...")
     node_proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
 
-    rclpy.init()
+    rclpy.init(args=[])  # this process's own command line is not ROS arguments (-p NAME:=VALUE goes to the node)
     node = rclpy.create_node("latency_bench")
     map_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     pub_map = node.create_publisher(type(map_msg), "/map", map_qos)
