@@ -4,6 +4,7 @@ cannot change). No replay runs here."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,7 +199,6 @@ def test_the_switch_watch_scores_each_switch_against_the_truth_and_ignores_re_sp
 def test_the_table_in_the_docs_has_every_mechanism_every_part_and_three_seeds():
     """docs/ablation.md is the tool's table: a row per mechanism the tool switches, a column group per part,
     each cell a mean ± spread over seeds 0, 1, 2 (a new mechanism without a row fails here)."""
-    from pathlib import Path
     text = (Path(__file__).resolve().parents[1] / "docs" / "ablation.md").read_text()
     rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
     for mechanism in J.MECHANISMS.values():

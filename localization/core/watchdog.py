@@ -102,8 +102,9 @@ class Watchdog:
         self._updates: deque = deque()  # (now, {phase: seconds}) of sensor updates
         self._drops: deque = deque()  # (now, count, reason) of scans not used
         self.scans_dropped = 0  # over the whole run
-        # (seconds per PHASES part) of the run's last RUN_MAX updates: one array, allocated once (no growth)
-        self._run = np.full((RUN_MAX, len(PHASES)), 0.0, dtype=np.float32)  # written now: no later growth
+        # seconds per PHASES part of the run's last RUN_MAX updates: one array, written at once (np.full, not
+        # np.zeros, so its pages are resident from the start and the memory does not grow later)
+        self._run = np.full((RUN_MAX, len(PHASES)), 0.0, dtype=np.float32)
         self._run_count = 0  # updates recorded over the run (the newest in row (count - 1) % RUN_MAX)
         self._rejected = 0
 
