@@ -17,9 +17,9 @@ FACADE_RANK = 5  # localization/*.py: the course's module names
 # the core's folders by role, lowest first ("base": the modules directly in core/: geometry, scan, maps, ...)
 CORE_LAYERS = {"base": 0, "raycast": 1, "matching": 1, "models": 2, "filter": 3, "localizer": 4}
 ROS_MODULES = ("rclpy", "tf2_ros", "builtin_interfaces", "rcl_interfaces", "rosidl_runtime_py", "launch")
-# the only modules that talk ROS (DDS): the node's package, the DDS player, the live latency benchmark
+# the only modules that talk ROS (DDS): the node's package, the DDS player, the node's benchmarks
 ROS_ALLOWED = ("localization.ros.", "localization.tools.play", "localization.benchmarks.latency",
-               "localization.benchmarks.cold_start",
+               "localization.benchmarks.cold_start", "localization.benchmarks.node_callbacks",
                "localization.particle_filter")
 
 

@@ -96,12 +96,12 @@ def test_time_msg_and_stamp_book_keep_exact_nanoseconds():
     book = StampBook(size=2)
     exact = Time(sec=1_700_000_000, nanosec=123_456_789)
     t = book.remember(exact)
-    got = book.lookup(t)
-    assert (got.sec, got.nanosec) == (exact.sec, exact.nanosec)
+    assert book.lookup(t) == (exact.sec, exact.nanosec)
+    assert book.remember((exact.sec, exact.nanosec)) == t  # a (sec, nanosec) pair (ros.cdr's readers) alike
     book.remember(Time(sec=1, nanosec=0))
     book.remember(Time(sec=2, nanosec=0))  # evicts the oldest
-    rounded = book.lookup(t)  # falls back to the float, which cannot hold every nanosecond
-    assert rounded.sec == exact.sec and abs(rounded.nanosec - exact.nanosec) < 1000
+    sec, nanosec = book.lookup(t)  # falls back to the float, which cannot hold every nanosecond
+    assert sec == exact.sec and abs(nanosec - exact.nanosec) < 1000
 
 
 def test_occupancy_grid_msg_round_trips():

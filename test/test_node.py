@@ -575,3 +575,16 @@ def test_console_script_with_the_parameter_file(context, drive):
         probe.destroy_node()
     assert proc.returncode == 0, out
     assert "2000 particles" not in out and "300 particles" in out
+
+
+def test_node_callbacks_benchmark_feeds_the_whole_bag(shared_dir):
+    """``benchmarks.node_callbacks``: RSS bag1's bytes through the node's callbacks; the core's part of each
+    callback's CPU is inside that callback's."""
+    from localization.benchmarks.node_callbacks import measure
+    if not (shared_dir / "bags" / "rss2022").exists():
+        pytest.skip("the RSS bags are not available")
+    r = measure("bag1", repeat=1)
+    assert r["scans"] == 281  # every scan of bag1 handled
+    for kind in ("odometry", "scan"):
+        assert 0.0 < r["core_percent"][kind] <= r["by_callback_percent"][kind]
+    assert r["share_percent"] == pytest.approx(sum(r["by_callback_percent"].values()))

@@ -152,7 +152,14 @@ def maps(draw):
     return msg
 
 
-MESSAGES = st.one_of(scans().map(lambda m: ("scan", m)), odoms().map(lambda m: ("odom", m)),
+def _wire(kind):
+    """A scan or odometry message as the node's subscription delivers it (CDR bytes) or as a message."""
+    from rclpy.serialization import serialize_message
+    return st.tuples(st.just(kind), {"scan": scans, "odom": odoms}[kind](), st.booleans()).map(
+        lambda k_m_raw: (k_m_raw[0], serialize_message(k_m_raw[1]) if k_m_raw[2] else k_m_raw[1]))
+
+
+MESSAGES = st.one_of(_wire("scan"), _wire("odom"),
                      initialposes().map(lambda m: ("initialpose", m)), maps().map(lambda m: ("map", m)))
 
 
@@ -200,6 +207,29 @@ def test_node_keeps_working_after_broken_input_and_publishes_health(node):
     assert all(_finite_msg(m) for m in _outputs(n))
     assert n.outputs.health_pub.sent[-1].data > 0.7
     assert np.hypot(*(n.localizer.estimate.pose[:2] - pose[:2])) < 0.2
+
+
+def test_unreadable_input_bytes_are_logged_and_ignored(node, capfd):
+    """Bytes on /scan or the odometry topic that are not the message (cut short, another encoding): one
+    warning each, nothing published, and the node goes on with the next good message."""
+    from rclpy.serialization import serialize_message
+    n = node
+    n.on_map(n.good_map)
+    assert h.wait_until(lambda: n.map_install.idle, 30.0)
+    n.on_initialpose(h.initialpose_msg([5.0, 1.5, 0.0]))
+    _clear(n)
+    odom = serialize_message(h.odom_msg(h.T0_NS + 2 * 10**12, [5.0, 1.5, 0.0], 0.0))
+    scan = serialize_message(h.scan_msg(h.T0_NS + 2 * 10**12, np.full(h.NUM_BEAMS, 3.0)))
+    n.on_odometry(odom[:-9])
+    n.process_scan(scan[:40])
+    n.process_scan(b"\x00\x07\x00\x00" + scan[4:])
+    assert not _outputs(n)
+    err = capfd.readouterr().err
+    assert "odometry message on /odom ignored: truncated" in err
+    assert "scan message on /scan ignored: truncated" in err
+    for k in range(3):  # a new history after the earlier tests' stamps: it starts at the second message
+        n.on_odometry(serialize_message(h.odom_msg(h.T0_NS + 2 * 10**12 + k * 20_000_000, [5.0, 1.5, 0.0], 0.0)))
+    assert n.outputs.pose_pub.sent and all(_finite_msg(m) for m in _outputs(n))
 
 
 # ------------------------------------------------------------------ localization-replay

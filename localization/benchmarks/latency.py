@@ -23,7 +23,7 @@ Prints median / p95 / max latency, the fraction of scans that produced a sensor 
 pose (the target: every scan), the odometry → pose latency too, the node's peak memory (VmHWM),
 and where the time went inside the node, read from its shutdown log line (``scan -> pose: total,
 wait, deserialize, convert, update, publish`` median/p95 in ms: queued for the sensor-update
-thread, CDR bytes → LaserScan, message → ScanData, sensor update + resampling, outputs; see
+thread, CDR bytes → ScanData, its stamp kept and the laser pose, sensor update + resampling, outputs; see
 ``core.watchdog.Watchdog.run_summary``; ``wait`` is 0 unless ``-p sensor_update_thread:=true``).
 A node that cannot keep up shows a latency growing through
 the run (compare the first and second half) and scans without a pose.
@@ -424,8 +424,8 @@ def format_result(r: dict) -> str:
                  f"{r['node_ready_s']:.1f} s after start; load average {r['load_average_start']:.1f} -> "
                  f"{r['load_average_end']:.1f}; extra parameters {r['extra_params'] or 'none'}"
                  f"\n  where the time went inside the node (scan received -> pose published; wait = queued for "
-                 f"the sensor-update thread (0 unless sensor_update_thread), deserialize = CDR -> LaserScan, "
-                 f"convert = message -> ScanData, "
+                 f"the sensor-update thread (0 unless sensor_update_thread), deserialize = CDR -> ScanData, "
+                 f"convert = stamp kept + laser pose, "
                  f"update = waiting for the odometry that reaches the scan's time + sensor update + resampling, "
                  f"publish = the correction on /pf/pose):\n    {r.get('node_breakdown') or 'not reported'}")
     return text

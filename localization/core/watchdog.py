@@ -194,8 +194,8 @@ class Watchdog:
 
     def run_summary(self) -> str:
         """Where the scan -> pose time went over the whole run: median / p95 (ms) of the total and of
-        each part (wait: queued for the sensor-update thread, 0 without one; deserialize: CDR bytes -> LaserScan;
-        convert: message -> ScanData and laser pose; update: the Localizer's sensor update +
+        each part (wait: queued for the sensor-update thread, 0 without one; deserialize: CDR bytes -> ScanData;
+        convert: its stamp kept and the laser pose; update: the Localizer's sensor update +
         resampling; publish: the outputs)."""
         with self._lock:
             a = self._run[:min(self._run_count, RUN_MAX)] * 1e3

@@ -1,4 +1,4 @@
-"""The node's per-message outputs serialized directly (CDR), without building a Python message.
+"""The node's per-message inputs and outputs in CDR directly, without building a Python message.
 
 On every odometry message the node publishes nav_msgs/Odometry and a TF, on every scan a
 PoseWithCovarianceStamped and the particle cloud (PoseArray): building those as rclpy message objects
@@ -8,9 +8,14 @@ the node publishes them as they are (``publisher.publish(bytes)``). Each deseria
 ``localization.ros.messages`` builds for the same input (test_messages.py), and returns None where that
 builder does (a non-finite pose).
 
-CDR (XCDR1, little endian): the 4-byte encapsulation header 00 01 00 00, then every field aligned to
-its own size counted from the end of that header; a string is a uint32 length (with the NUL), its
-bytes and the NUL; a sequence a uint32 count and its elements.
+The inputs at their rates (odometry ~50 Hz, scans ~40 Hz) are read the same way: ``read_odometry`` and
+``read_scan`` take a subscription's CDR bytes to what the node needs (``conversions.OdometryIn``, a
+``ScanData`` and its exact stamp): the values ``ros.conversions`` gives of rclpy's message, bit for bit
+(test_cdr.py).
+
+CDR (XCDR1): the 4-byte encapsulation header (00 01 00 00 little endian, 00 00 00 00 big endian; written
+little endian), then every field aligned to its own size counted from the end of that header; a string
+is a uint32 length (with the NUL), its bytes and the NUL; a sequence a uint32 count and its elements.
 """
 from __future__ import annotations
 
@@ -18,6 +23,10 @@ import struct
 
 import numpy as np
 
+from localization.core.geometry import quaternion_to_yaw
+from localization.core.odometry import TwistData
+from localization.core.scan import ScanData
+from localization.ros.conversions import OdometryIn, parts_to_sec
 from localization.ros.messages import covariance_6x6_array, finite_pose, select_particles
 from localization.ros.stamps import stamp_parts
 
@@ -106,3 +115,84 @@ def pose_array_cdr(particles, stamp, frame_id: str, max_count: int) -> bytes:
     poses[:, 5] = np.sin(0.5 * p[:, 2])
     poses[:, 6] = np.cos(0.5 * p[:, 2])
     return bytes(buf) + poses.tobytes()
+
+
+class CdrError(ValueError):
+    """Bytes that are not the expected message in plain CDR (truncated, or another encoding)."""
+
+
+class _Reader:
+    """Fields read in order from CDR bytes, each aligned to its size (the module docstring)."""
+
+    def __init__(self, data):
+        if len(data) < 4 or data[0] != 0 or data[1] not in (0, 1):
+            raise CdrError(f"not plain CDR (encapsulation {bytes(data[:4]).hex() or 'missing'})")
+        self.data, self.pos, self.order = data, 4, "<" if data[1] == 1 else ">"
+
+    def take(self, fmt: str, align: int) -> tuple:
+        self.pos += -(self.pos - 4) % align
+        fmt = self.order + fmt
+        try:
+            values = struct.unpack_from(fmt, self.data, self.pos)
+        except struct.error:
+            raise CdrError(f"truncated at byte {self.pos} of {len(self.data)}") from None
+        self.pos += struct.calcsize(fmt)
+        return values
+
+    def skip(self, size: int, align: int) -> None:
+        """Past a field of ``size`` bytes (aligned to ``align``) that is not needed, checking it is there."""
+        self.pos += -(self.pos - 4) % align + size
+        if self.pos > len(self.data):
+            raise CdrError(f"truncated: {self.pos} bytes needed, {len(self.data)} given")
+
+    def string(self) -> str:
+        (size,) = self.take("I", 4)  # with the NUL
+        end = self.pos + size
+        if end > len(self.data):
+            raise CdrError(f"a string of {size} bytes runs past the end ({len(self.data)})")
+        text = bytes(self.data[self.pos:max(end - 1, self.pos)]).decode(errors="replace")
+        self.pos = end
+        return text
+
+    def floats(self) -> np.ndarray:
+        """A sequence<float32> as float64."""
+        (count,) = self.take("I", 4)
+        if self.pos + 4 * count > len(self.data):
+            raise CdrError(f"a sequence of {count} floats runs past the end ({len(self.data)} bytes)")
+        values = np.frombuffer(self.data, dtype=self.order + "f4", count=count, offset=self.pos)
+        self.pos += 4 * count
+        return values.astype(float)
+
+    def stamp(self) -> tuple[int, int]:
+        """builtin_interfaces/Time: (sec, nanosec)."""
+        return self.take("iI", 4)
+
+
+def read_odometry(data) -> OdometryIn:
+    """nav_msgs/Odometry's CDR bytes -> ``OdometryIn`` (``conversions.odometry_from_msg`` of the message);
+    ``CdrError`` for bytes that are not one."""
+    r = _Reader(data)
+    stamp = r.stamp()
+    frame_id = r.string()
+    r.string()  # child_frame_id
+    x, y, _, qx, qy, qz, qw = r.take("7d", 8)
+    r.skip(36 * 8, 8)  # the pose's covariance
+    vx, vy, _, _, _, wz = r.take("6d", 8)
+    r.skip(36 * 8, 8)  # the twist's
+    pose = np.array([float(x), float(y), float(quaternion_to_yaw(qx, qy, qz, qw))])
+    return OdometryIn(stamp, TwistData(stamp=parts_to_sec(*stamp), vx=vx, vy=vy, wz=wz, frame_id=frame_id), pose)
+
+
+def read_scan(data) -> tuple[tuple[int, int], ScanData]:
+    """sensor_msgs/LaserScan's CDR bytes -> (its exact stamp, ``conversions.scan_from_msg`` of the message);
+    ``CdrError`` for bytes that are not one."""
+    r = _Reader(data)
+    stamp = r.stamp()
+    frame_id = r.string()
+    angle_min, angle_max, angle_increment, time_increment, scan_time, range_min, range_max = r.take("7f", 4)
+    ranges = r.floats()
+    (count,) = r.take("I", 4)
+    r.skip(4 * count, 4)  # the intensities
+    return stamp, ScanData(stamp=parts_to_sec(*stamp), ranges=ranges, angle_min=angle_min, angle_max=angle_max,
+                           angle_increment=angle_increment, range_min=range_min, range_max=range_max,
+                           time_increment=time_increment, scan_time=scan_time, frame_id=frame_id)

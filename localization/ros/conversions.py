@@ -3,6 +3,7 @@ messages and the rosbags-deserialised messages of the replay tool alike (no ROS 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -21,7 +22,12 @@ class PoseData:
 
 def stamp_to_sec(stamp) -> float:
     """builtin_interfaces/Time -> seconds (float)."""
-    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+    return parts_to_sec(stamp.sec, stamp.nanosec)
+
+
+def parts_to_sec(sec: int, nanosec: int) -> float:
+    """(sec, nanosec) -> seconds (float)."""
+    return float(sec) + 1e-9 * float(nanosec)
 
 
 def sec_to_stamp_parts(t: float) -> tuple[int, int]:
@@ -42,6 +48,20 @@ def twist_from_odometry(msg) -> TwistData:
     t = msg.twist.twist
     return TwistData(stamp=stamp_to_sec(msg.header.stamp), vx=float(t.linear.x), vy=float(t.linear.y),
                      wz=float(t.angular.z), frame_id=msg.header.frame_id)
+
+
+class OdometryIn(NamedTuple):
+    """What the node reads of a nav_msgs/Odometry: its exact stamp, its twist and its pose [x, y, yaw]."""
+
+    stamp: tuple[int, int]  # (sec, nanosec)
+    twist: TwistData
+    pose: np.ndarray
+
+
+def odometry_from_msg(msg) -> OdometryIn:
+    """nav_msgs/Odometry -> ``OdometryIn`` (``ros.cdr.read_odometry`` reads the same from its bytes)."""
+    return OdometryIn((int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)), twist_from_odometry(msg),
+                      pose_from_msg(msg.pose.pose))
 
 
 def pose_from_msg(pose) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Latency bookkeeping: each scan's way through the node, until its correction is published.
 
 Per scan (monotonic times): ``put`` (arrived, or queued for the sensor-update thread), ``start``
-(its handling began), ``deserialized`` (CDR -> LaserScan), ``converted`` (-> ScanData). When the
+(its handling began), ``deserialized`` (CDR bytes -> ScanData), ``converted`` (stamp kept, laser pose). When the
 correction at the scan's time t_s is published, the phases go to the watchdog (/diagnostics):
 
     wait = start - put,  deserialize = deserialized - start,  convert = converted - deserialized,

@@ -44,20 +44,15 @@ from collections import Counter
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import LaserScan
 from std_srvs.srv import Empty
 
 from localization.core.localizer import Ignored, Localizer
 from localization.core.parameters import NODE_NAME, ParameterError
 from localization.core.watchdog import Watchdog
+from localization.ros.cdr import CdrError, read_odometry, read_scan
 from localization.ros.cli import spin_node
-from localization.ros.conversions import (
-    pose_from_msg,
-    pose_from_pose_with_covariance,
-    scan_from_msg,
-    twist_from_odometry,
-)
+from localization.ros.conversions import odometry_from_msg, pose_from_pose_with_covariance, scan_from_msg
 from localization.ros.diagnostics import Diagnostics
 from localization.ros.laser_tf import LaserPoseSource
 from localization.ros.latency import LatencyBook
@@ -146,11 +141,12 @@ class LocalizationMixin:
         self._pf_subs = [
             self.create_subscription(OccupancyGrid, p.map_topic, self.on_map, MAP_QOS),
             self.create_subscription(PoseWithCovarianceStamped, p.initialpose_topic, self.on_initialpose, 10),
-            # raw: the CDR bytes are deserialized on the sensor-update thread, not the executor's
+            # raw: the CDR bytes are read by ros.cdr (no Python message built), a scan's on the
+            # sensor-update thread when there is one
             self.create_subscription(LaserScan, p.scan_topic, self.on_scan, SCAN_QOS,
                                      qos_overriding_options=QOS_OVERRIDES, raw=True),
             self.create_subscription(Odometry, p.odom_topic, self.on_odometry, ODOM_QOS,
-                                     qos_overriding_options=QOS_OVERRIDES),
+                                     qos_overriding_options=QOS_OVERRIDES, raw=True),
         ]
         self.laser.listen()
         self._pf_timers = [self.create_timer(p.diagnostics_period, self.publish_diagnostics)]
@@ -245,19 +241,25 @@ class LocalizationMixin:
         return response
 
     @_counted("odom")
-    def on_odometry(self, msg: Odometry) -> None:
+    def on_odometry(self, msg) -> None:
         """The pose carried forward to this message's time t'_k on /pf/pose/odom and TF (map -> odom
         pairs it with this message's own odometry pose), then any corrections the odometry released
         (scans wait in the localizer for the odometry that reaches their time). Odometry that
         arrives before the localizer is ready (no map yet, range table being built, no initial
-        pose) is kept in its history all the same."""
+        pose) is kept in its history all the same. ``msg``: the CDR bytes, or a nav_msgs/Odometry."""
         self.watchdog.odom_received(time.monotonic())
         if self.localizer.map_pending and not self.localizer.has_map:
             self.watchdog.odom_waiting_for_table += 1
-        t_odom = self.stamps.remember(msg.header.stamp) + self.params.odom_time_offset  # scan clock
-        odom_pose = pose_from_msg(msg.pose.pose) if self.outputs.map_to_odom else None
+        try:
+            odom = odometry_from_msg(msg) if isinstance(msg, Odometry) else read_odometry(msg)
+        except CdrError as exc:
+            self.get_logger().warning(f"odometry message on {self.params.odom_topic} ignored: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        t_odom = self.stamps.remember(odom.stamp) + self.params.odom_time_offset  # scan clock
+        odom_pose = odom.pose if self.outputs.map_to_odom else None
         # with the sensor-update thread, scans this odometry releases run there (at its next scan), not here
-        est = self.localizer.on_odometry(twist_from_odometry(msg), run_scans=self.scan_worker is None)
+        est = self.localizer.on_odometry(odom.twist, run_scans=self.scan_worker is None)
         if math.isfinite(t_odom):
             self._last_data_stamp = t_odom
             self._last_odom = (t_odom, odom_pose)
@@ -284,11 +286,17 @@ class LocalizationMixin:
         sensor-update thread runs this; tests may call it directly). Times each part for /diagnostics."""
         t_start = time.monotonic()
         t_put = t_start if t_put is None else t_put
-        if isinstance(msg, (bytes, bytearray, memoryview)):
-            msg = deserialize_message(bytes(msg), LaserScan)
+        if isinstance(msg, LaserScan):
+            stamp, scan = msg.header.stamp, scan_from_msg(msg)
+        else:
+            try:
+                stamp, scan = read_scan(msg)
+            except CdrError as exc:
+                self.get_logger().warning(f"scan message on {self.params.scan_topic} ignored: {exc}",
+                                          throttle_duration_sec=5.0)
+                return
         t_deser = time.monotonic()
-        self.stamps.remember(msg.header.stamp)
-        scan = scan_from_msg(msg)
+        self.stamps.remember(stamp)
         if self.laser.pending:
             self.laser.resolve(scan.frame_id, t_start)
         t_conv = time.monotonic()

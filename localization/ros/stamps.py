@@ -7,7 +7,7 @@ from collections import OrderedDict
 import numpy as np
 from builtin_interfaces.msg import Time
 
-from localization.ros.conversions import sec_to_stamp_parts, stamp_to_sec
+from localization.ros.conversions import parts_to_sec, sec_to_stamp_parts
 
 INT32_MAX = 2**31 - 1  # builtin_interfaces/Time.sec is int32
 
@@ -21,8 +21,11 @@ def time_msg(stamp) -> Time:
 
 
 def stamp_parts(stamp) -> tuple[int, int]:
-    """(sec, nanosec) of ``time_msg(stamp)``, without building the message."""
-    if hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
+    """(sec, nanosec) of ``time_msg(stamp)``, without building the message; ``stamp``: float seconds, a
+    Time-like message or a (sec, nanosec) pair."""
+    if isinstance(stamp, tuple):
+        sec, nanosec = int(stamp[0]), min(max(int(stamp[1]), 0), 999_999_999)
+    elif hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
         sec, nanosec = int(stamp.sec), min(max(int(stamp.nanosec), 0), 999_999_999)
     else:
         t = float(stamp)
@@ -35,7 +38,7 @@ def stamp_parts(stamp) -> tuple[int, int]:
 
 
 class StampBook:
-    """Remembers the exact ``Time`` of recent input messages by their float-seconds value.
+    """Remembers the exact stamps of recent input messages by their float-seconds value.
 
     The core keeps stamps as float seconds, which cannot hold a 2022 epoch time to the
     nanosecond; outputs are stamped with the exact input stamp when it is one of the last
@@ -43,19 +46,22 @@ class StampBook:
 
     def __init__(self, size: int = 256):
         self._size = size
-        self._book: OrderedDict[float, Time] = OrderedDict()
+        self._book: OrderedDict[float, tuple[int, int]] = OrderedDict()
         self._lock = threading.Lock()
 
     def remember(self, stamp) -> float:
-        t = stamp_to_sec(stamp)
+        """``stamp``: a Time-like message or a (sec, nanosec) pair; returns it in float seconds."""
+        parts = stamp if isinstance(stamp, tuple) else (stamp.sec, stamp.nanosec)
+        t = parts_to_sec(*parts)
         with self._lock:
-            self._book[t] = time_msg(stamp)
+            self._book[t] = stamp_parts(parts)
             self._book.move_to_end(t)
-            while len(self._book) > self._size:
+            if len(self._book) > self._size:
                 self._book.popitem(last=False)
         return t
 
-    def lookup(self, t: float) -> Time:
+    def lookup(self, t: float) -> tuple[int, int]:
+        """(sec, nanosec): the remembered stamp of time t, else t rounded (``stamp_parts``)."""
         with self._lock:
             exact = self._book.get(t)
-        return time_msg(exact if exact is not None else t)
+        return exact if exact is not None else stamp_parts(t)
