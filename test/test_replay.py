@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -374,4 +375,12 @@ def test_timing_stats():
 def test_default_parameters_are_the_tuned_ones():
     """The replay uses the package defaults unless told otherwise (what the targets are for)."""
     p = R.params_from_args(R.build_parser().parse_args(["bag", "--map", "m"]))
-    assert p == Parameters(random_seed=0)
+    assert p == Parameters(random_seed=0, num_threads=min(os.cpu_count() or 1, 256))  # every core (the same weights)
+
+
+@pytest.mark.parametrize("argv, threads", [(["--threads", "3"], 3), (["-p", "num_threads:=1"], 1),
+                                           (["--threads", "3", "-p", "num_threads:=2"], 2)])
+def test_threads_option_and_parameter(argv, threads):
+    """``--threads`` sets the sensor update's threads; ``-p num_threads`` wins over it."""
+    args = R.build_parser().parse_args(["bag", "--map", "m", *argv])
+    assert R.params_from_args(args).num_threads == threads

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -32,6 +33,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("-p", "--param", dest="overrides", action="append", type=args_.param_override, default=[],
                     metavar="NAME=VALUE", help="override one parameter (repeatable; NAME:=VALUE works too)")
     ap.add_argument("--particles", type=int, help="shortcut for -p num_particles=N")
+    ap.add_argument("--threads", type=int, default=None, metavar="N",
+                    help="CPU threads of the sensor update (num_threads; the same results as one thread); default: "
+                         "every core of this machine, whatever the parameter file gives the robot's computer "
+                         "(-p num_threads:=N wins)")
     ap.add_argument("--out", type=Path, help="output folder (default: a new replay-<bag>-<time> folder here)")
     ap.add_argument("--initial-pose", type=args_.pose, metavar="X,Y,YAW", help="initial pose (map frame)")
     ap.add_argument("--global", dest="force_global", action="store_true", help="start with global localization")
@@ -78,6 +83,8 @@ def overrides_from_args(args) -> dict:
     overrides = dict(args.overrides)
     if args.particles is not None:
         overrides["num_particles"] = args.particles
+    if "num_threads" not in overrides:
+        overrides["num_threads"] = args.threads if args.threads is not None else min(os.cpu_count() or 1, 256)
     overrides["random_seed"] = args.seed
     return overrides
 
