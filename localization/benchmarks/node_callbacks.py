@@ -52,14 +52,14 @@ def measure(bag: str = "bag1", repeat: int = 3) -> dict:
             node.on_map(grid)
             while not node.map_install.idle:
                 time.sleep(0.01)
-            first_odometry = next(raw for is_scan, raw in messages if not is_scan)
-            node.on_odometry(first_odometry)  # the start pose is then stamped at its time
+            first = next(k for k, (is_scan, _) in enumerate(messages) if not is_scan)
+            node.on_odometry(messages[first][1])  # the start pose is then stamped at its time
             node.on_initialpose(start)
             core = {"odometry": 0.0, "scan": 0.0}
             for owner, name, kind in ((node.localizer, "on_odometry", "odometry"), (node.localizer, "on_scan", "scan")):
                 setattr(owner, name, _timed(getattr(owner, name), core, kind))
             total = {"odometry": 0.0, "scan": 0.0}
-            for is_scan, raw in messages:
+            for is_scan, raw in messages[:first] + messages[first + 1:]:
                 kind = "scan" if is_scan else "odometry"
                 t0 = time.thread_time()
                 node.on_scan(raw) if is_scan else node.on_odometry(raw)
