@@ -152,14 +152,13 @@ def maps(draw):
     return msg
 
 
-def _wire(kind):
-    """A scan or odometry message as the node's subscription delivers it (CDR bytes) or as a message."""
+def _wire(kind, messages):
+    """(kind, a message as the node's subscription delivers it (CDR bytes) or as a message object)."""
     from rclpy.serialization import serialize_message
-    return st.tuples(st.just(kind), {"scan": scans, "odom": odoms}[kind](), st.booleans()).map(
-        lambda k_m_raw: (k_m_raw[0], serialize_message(k_m_raw[1]) if k_m_raw[2] else k_m_raw[1]))
+    return st.tuples(messages, st.booleans()).map(lambda m: (kind, serialize_message(m[0]) if m[1] else m[0]))
 
 
-MESSAGES = st.one_of(_wire("scan"), _wire("odom"),
+MESSAGES = st.one_of(_wire("scan", scans()), _wire("odom", odoms()),
                      initialposes().map(lambda m: ("initialpose", m)), maps().map(lambda m: ("map", m)))
 
 

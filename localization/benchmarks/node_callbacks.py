@@ -15,7 +15,6 @@ share, DDS and the executor included, is ``benchmarks.latency --car``'s.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import sys
@@ -27,6 +26,7 @@ def measure(bag: str = "bag1", repeat: int = 3) -> dict:
     from rclpy.parameter import Parameter
 
     from localization.bags import read_messages
+    from localization.benchmarks.per_scan import thread_timed
     from localization.core.occupancy_map import load_map
     from localization.core.parameters import Parameters
     from localization.core.paths import config_dir
@@ -57,7 +57,7 @@ def measure(bag: str = "bag1", repeat: int = 3) -> dict:
             node.on_initialpose(start)
             core = {"odometry": 0.0, "scan": 0.0}
             for owner, name, kind in ((node.localizer, "on_odometry", "odometry"), (node.localizer, "on_scan", "scan")):
-                setattr(owner, name, _timed(getattr(owner, name), core, kind))
+                setattr(owner, name, thread_timed(getattr(owner, name), core, kind))
             total = {"odometry": 0.0, "scan": 0.0}
             for is_scan, raw in messages[:first] + messages[first + 1:]:
                 kind = "scan" if is_scan else "odometry"
@@ -80,17 +80,6 @@ def measure(bag: str = "bag1", repeat: int = 3) -> dict:
     return {"bag": bag, "particles": file_params.num_particles, "bag_seconds": duration, "scans": best["scans"],
             "share_percent": sum(share.values()), "by_callback_percent": share, "core_percent": core,
             "load_average": os.getloadavg()[0]}
-
-
-def _timed(call, into: dict, key: str):
-    @functools.wraps(call)
-    def wrapper(*args, **kwargs):
-        t0 = time.thread_time()
-        try:
-            return call(*args, **kwargs)
-        finally:
-            into[key] += time.thread_time() - t0
-    return wrapper
 
 
 def main(argv=None) -> int:

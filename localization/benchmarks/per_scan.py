@@ -43,18 +43,6 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5) -> dict:
     parts: dict[str, float] = {}
     timing = [False]
 
-    def timed(name, call):
-        @functools.wraps(call)
-        def wrapper(*args, **kwargs):
-            if not timing[0]:
-                return call(*args, **kwargs)
-            t0 = time.thread_time()
-            try:
-                return call(*args, **kwargs)
-            finally:
-                parts[name] = parts.get(name, 0.0) + time.thread_time() - t0
-        return wrapper
-
     def run():
         loc = Localizer(params)
         loc.set_map(occupancy_map)
@@ -66,7 +54,7 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5) -> dict:
                                    (pf, "_weigh", "normalise"), (pipeline.recovery, "decide", "decide (agreement)"),
                                    (pipeline, "_gate", "gate"), (pipeline, "_beams", "beams"),
                                    (pipeline, "_deskew", "deskew")):
-            setattr(owner, name, timed(label, getattr(owner, name)))
+            setattr(owner, name, thread_timed(getattr(owner, name), parts, label, lambda: timing[0]))
         feeder = Feeder(loc, make_scorer(occupancy_map, params))
         feeder._start(START_GLOBAL, events[0].stamp)  # as Feeder.run at the first input
         scans, total = 0, 0.0
@@ -92,6 +80,20 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5) -> dict:
             "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
             "parts": {name: 1e3 * v / scans for name, v in sorted(best_parts.items(), key=lambda kv: -kv[1])},
             "load_average": os.getloadavg()[0]}
+
+
+def thread_timed(call, into: dict, key: str, active=lambda: True):
+    """``call`` that adds its thread CPU time (``time.thread_time``) to ``into[key]`` while ``active()``."""
+    @functools.wraps(call)
+    def wrapper(*args, **kwargs):
+        if not active():
+            return call(*args, **kwargs)
+        t0 = time.thread_time()
+        try:
+            return call(*args, **kwargs)
+        finally:
+            into[key] = into.get(key, 0.0) + time.thread_time() - t0
+    return wrapper
 
 
 def main(argv=None) -> int:

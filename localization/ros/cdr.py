@@ -34,8 +34,14 @@ ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little endian
 _ZERO_TWIST = bytes(8 * (6 + 36))  # geometry_msgs/TwistWithCovariance: all zero
 
 
+def _padding(offset: int, size: int) -> int:
+    """Bytes before a field of ``size`` at byte ``offset`` of the message (alignment counts from the end of the
+    encapsulation header)."""
+    return -(offset - 4) % size
+
+
 def _align(buf: bytearray, size: int) -> None:
-    buf += bytes(-(len(buf) - 4) % size)
+    buf += bytes(_padding(len(buf), size))
 
 
 def _string(buf: bytearray, text: str) -> None:
@@ -130,7 +136,7 @@ class _Reader:
         self.data, self.pos, self.order = data, 4, "<" if data[1] == 1 else ">"
 
     def take(self, fmt: str, align: int) -> tuple:
-        self.pos += -(self.pos - 4) % align
+        self.pos += _padding(self.pos, align)
         fmt = self.order + fmt
         try:
             values = struct.unpack_from(fmt, self.data, self.pos)
@@ -141,7 +147,7 @@ class _Reader:
 
     def skip(self, size: int, align: int) -> None:
         """Past a field of ``size`` bytes (aligned to ``align``) that is not needed, checking it is there."""
-        self.pos += -(self.pos - 4) % align + size
+        self.pos += _padding(self.pos, align) + size
         if self.pos > len(self.data):
             raise CdrError(f"truncated: {self.pos} bytes needed, {len(self.data)} given")
 

@@ -23,10 +23,9 @@ def time_msg(stamp) -> Time:
 def stamp_parts(stamp) -> tuple[int, int]:
     """(sec, nanosec) of ``time_msg(stamp)``, without building the message; ``stamp``: float seconds, a
     Time-like message or a (sec, nanosec) pair."""
-    if isinstance(stamp, tuple):
-        sec, nanosec = int(stamp[0]), min(max(int(stamp[1]), 0), 999_999_999)
-    elif hasattr(stamp, "sec") and hasattr(stamp, "nanosec"):
-        sec, nanosec = int(stamp.sec), min(max(int(stamp.nanosec), 0), 999_999_999)
+    if isinstance(stamp, tuple) or (hasattr(stamp, "sec") and hasattr(stamp, "nanosec")):
+        sec, nanosec = _fields(stamp)
+        sec, nanosec = int(sec), min(max(int(nanosec), 0), 999_999_999)
     else:
         t = float(stamp)
         sec, nanosec = sec_to_stamp_parts(t if np.isfinite(t) and t >= 0 else 0.0)
@@ -35,6 +34,11 @@ def stamp_parts(stamp) -> tuple[int, int]:
     elif sec > INT32_MAX:
         sec, nanosec = INT32_MAX, 999_999_999
     return sec, nanosec
+
+
+def _fields(stamp) -> tuple:
+    """(sec, nanosec) as given, of a Time-like message or a (sec, nanosec) pair."""
+    return stamp if isinstance(stamp, tuple) else (stamp.sec, stamp.nanosec)
 
 
 class StampBook:
@@ -51,10 +55,9 @@ class StampBook:
 
     def remember(self, stamp) -> float:
         """``stamp``: a Time-like message or a (sec, nanosec) pair; returns it in float seconds."""
-        parts = stamp if isinstance(stamp, tuple) else (stamp.sec, stamp.nanosec)
-        t = parts_to_sec(*parts)
+        t = parts_to_sec(*_fields(stamp))
         with self._lock:
-            self._book[t] = stamp_parts(parts)
+            self._book[t] = stamp_parts(stamp)
             self._book.move_to_end(t)
             if len(self._book) > self._size:
                 self._book.popitem(last=False)
