@@ -80,7 +80,8 @@ if njit is not None:
             w = math.exp(log_weights[i] - peak) / sw
             dx = particles[i, 0] - mx
             dy = particles[i, 1] - my
-            dt = (particles[i, 2] - mth + np.pi) % two_pi - np.pi  # as geometry.wrap_angle
+            dt = particles[i, 2] - mth + np.pi  # as geometry.wrap_angle; the modulo only outside [0, 2π)
+            dt = dt - np.pi if 0.0 <= dt < two_pi else dt % two_pi - np.pi
             if dt <= -np.pi:
                 dt += two_pi
             cxx += w * dx * dx

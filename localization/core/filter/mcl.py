@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from localization.core.cost import WEIGH, CostMeter
+from localization.core.draws import standard_normal_into
 from localization.core.filter.kernels import estimate_kernel, weigh_kernel
 from localization.core.filter.resampling import NO_NOISE, resample_kernel, systematic_indices
 from localization.core.geometry import circular_mean, compose, wrap_angle
@@ -326,7 +327,7 @@ class MonteCarloLocalizer:
             noise = NO_NOISE
             if self.roughening.any():
                 noise = self._spare("noise", (n, 3))
-                self.rng.standard_normal(out=noise)  # the same draws as standard_normal((n, 3))
+                standard_normal_into(self.rng, noise)  # the same draws as standard_normal((n, 3))
             out = self._spare("particles", (n, 3))
             resample_kernel(self.particles, np.ascontiguousarray(weights, dtype=float), u0, noise,
                              self.roughening, out)

@@ -49,7 +49,8 @@ if njit is not None:
             if rough:
                 out[j, 0] = particles[i, 0] + noise[j, 0] * roughening[0]
                 out[j, 1] = particles[i, 1] + noise[j, 1] * roughening[1]
-                w = (particles[i, 2] + noise[j, 2] * roughening[2] + np.pi) % two_pi - np.pi
+                w = particles[i, 2] + noise[j, 2] * roughening[2] + np.pi  # the modulo only outside [0, 2π)
+                w = w - np.pi if 0.0 <= w < two_pi else w % two_pi - np.pi
                 out[j, 2] = w + two_pi if w <= -np.pi else w  # as geometry.wrap_angle
             else:
                 out[j, 0] = particles[i, 0]

@@ -56,6 +56,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
+from localization.core.draws import standard_normal_into
 from localization.core.geometry import integrate_twists, wrap_angle
 from localization.core.parameters import ROBOT_MODEL_TYPES, default
 
@@ -254,9 +255,9 @@ class MotionModel:
         if factor is None:
             factor = _NO_FACTOR
         elif noise_out is not None and noise_out.shape == (n, 3):
-            noise = self.rng.standard_normal(out=noise_out)  # the draws of standard_normal((n, 3))
+            noise = standard_normal_into(self.rng, noise_out)  # the draws of standard_normal((n, 3))
         else:
-            noise = self.rng.standard_normal((n, 3))
+            noise = standard_normal_into(self.rng, np.empty((n, 3)))
         if out is None:
             out = np.empty_like(particles)
         if _move_kernel is not None and particles.ndim == 2 and particles.shape[1] == 3:
@@ -298,7 +299,7 @@ class MotionModel:
         if noisy:
             fits = noise_out is not None and noise_out.shape[0] >= len(noisy) and noise_out.shape[1:] == (n, 3)
             noise = noise_out[:len(noisy)] if fits else np.empty((len(noisy), n, 3))
-            self.rng.standard_normal(out=noise)  # the draws of one standard_normal((n, 3)) per noisy piece
+            standard_normal_into(self.rng, noise)  # the draws of one standard_normal((n, 3)) per noisy piece
         else:
             noise = np.zeros((0, n, 3))
         which = np.full(len(plans), -1, dtype=np.int64)
@@ -381,7 +382,8 @@ if njit is not None:
             s = math.sin(th)
             x = particles[i, 0] + c * d0 - s * d1
             y = particles[i, 1] + s * d0 + c * d1
-            w = (th + d2 + np.pi) % two_pi - np.pi  # as geometry.wrap_angle
+            w = th + d2 + np.pi  # as geometry.wrap_angle; the modulo only outside [0, 2π) (the identity there)
+            w = w - np.pi if 0.0 <= w < two_pi else w % two_pi - np.pi
             if w <= -np.pi:
                 w += two_pi
             out[i, 0] = x
@@ -444,7 +446,8 @@ if njit is not None:
                 c = math.cos(th)
                 s = math.sin(th)
                 x, y = x + c * d0 - s * d1, y + s * d0 + c * d1
-                w = (th + d2 + np.pi) % two_pi - np.pi  # as geometry.wrap_angle
+                w = th + d2 + np.pi  # as geometry.wrap_angle; the modulo only outside [0, 2π) (the identity there)
+                w = w - np.pi if 0.0 <= w < two_pi else w % two_pi - np.pi
                 th = w + two_pi if w <= -np.pi else w
             out[i, 0] = x
             out[i, 1] = y
