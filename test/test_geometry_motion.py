@@ -4,9 +4,14 @@ import math
 import numpy as np
 import pytest
 
+from localization.core import geometry
 from localization.core.geometry import (
     circular_mean,
     compose,
+    compose_numpy,
+    integrate_twist,
+    integrate_twists,
+    integrate_twists_numpy,
     inverse,
     quaternion_to_yaw,
     relative,
@@ -31,6 +36,60 @@ def test_compose_relative_inverse_roundtrip():
     assert np.allclose(compose(a, relative(a, b))[:, :2], b[:, :2])
     assert np.allclose(np.cos(compose(a, relative(a, b))[:, 2]), np.cos(b[:, 2]))
     assert np.allclose(compose(a, inverse(a)), 0.0, atol=1e-12)
+
+
+EDGE_ANGLES = [0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -2 * np.pi, 3 * np.pi, 1e-300, -1e-300, 1e6, np.nan, np.inf]
+
+
+def _poses(seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    poses = rng.uniform(-50.0, 50.0, (n, 3))
+    poses[:, 2] = rng.uniform(-10.0, 10.0, n)
+    poses[:len(EDGE_ANGLES), 2] = EDGE_ANGLES
+    return poses
+
+
+def _relative_numpy(a, b):
+    """``relative`` through numpy's broadcasting (a stack of one row takes that path)."""
+    return relative(np.asarray(a)[None, :], np.asarray(b)[None, :])[0]
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's cos(inf) and remainder(inf)
+def test_one_pose_paths_equal_numpy_bit_for_bit():
+    """One pose goes through Python floats (the filter's many small calls), with numpy's results."""
+    a, b = _poses(0, 400), _poses(1, 400)[::-1].copy()
+    for p, d in zip(a, b):
+        np.testing.assert_array_equal(compose(p, d), compose_numpy(p, d))
+        np.testing.assert_array_equal(relative(p, d), _relative_numpy(p, d))
+        np.testing.assert_array_equal(compose(tuple(p.tolist()), list(d.tolist())), compose_numpy(p, d))
+    np.testing.assert_array_equal(inverse(a[20]), _relative_numpy(a[20], np.zeros(3)))
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_stack_with_one_pose_equals_numpy_bit_for_bit():
+    """A stack composed with one pose (either side) runs compiled, with numpy's results."""
+    stack, one = _poses(2, 300), _poses(3, 20)
+    for d in one:
+        np.testing.assert_array_equal(compose(stack, d), compose_numpy(stack, d))
+        np.testing.assert_array_equal(compose(d, stack), compose_numpy(d, stack))
+        np.testing.assert_array_equal(compose(stack[:, None, :][:, 0, :][::2], d), compose_numpy(stack[::2], d))
+    np.testing.assert_array_equal(compose(stack[:1], one[0]), compose_numpy(stack[:1], one[0]))  # (1, 3) stays 2-D
+    assert compose(np.zeros((0, 3)), one[0]).shape == (0, 3)
+    np.testing.assert_array_equal(compose(stack, stack[::-1]), compose_numpy(stack, stack[::-1]))  # numpy's own
+
+
+def test_integrate_twists_compiled_equals_numpy_and_the_scalar_form():
+    rng = np.random.default_rng(4)
+    vx, vy, wz, dt = (rng.uniform(-3.0, 3.0, 500) for _ in range(4))
+    wz[:100] *= 1e-7  # the second-order branch
+    wz[100] = 0.0
+    np.testing.assert_array_equal(integrate_twists(vx, vy, wz, dt), integrate_twists_numpy(vx, vy, wz, dt))
+    np.testing.assert_array_equal(integrate_twists(1.5, 0.0, 0.3, dt), integrate_twists_numpy(1.5, 0.0, 0.3, dt))
+    np.testing.assert_array_equal(integrate_twists(1.5, 0.1, 0.3, 0.02), integrate_twist(1.5, 0.1, 0.3, 0.02))
+    grid = integrate_twists(vx.reshape(20, 25), vy.reshape(20, 25), wz.reshape(20, 25), dt.reshape(20, 25))
+    np.testing.assert_array_equal(grid, integrate_twists_numpy(vx, vy, wz, dt).reshape(20, 25, 3))
+    if geometry._integrate_twists_kernel is not None:  # numba is pinned: the compiled loop is what ran above
+        assert geometry._compose_kernel is not None
 
 
 def test_deterministic_motion_is_exact_composition_by_hand():

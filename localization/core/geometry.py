@@ -1,12 +1,41 @@
 """Planar pose helpers: angle wrapping, pose composition, yaw <-> quaternion.
 
 Poses are ``[x, y, theta]`` rows; every function accepts one pose ``(3,)`` or a stack ``(N, 3)``.
+
+The filter calls ``compose``, ``relative`` and ``integrate_twists`` many times per scan on one pose or a
+few: there numpy's per-call cost is most of the time, so one pose goes through Python floats and the
+arrays of ``integrate_twists`` (and a stack composed with one pose) through compiled loops, with the
+numpy code's arithmetic in the same order (``*_numpy`` are the references, asserted equal in
+``test/test_geometry_motion.py``).
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+try:  # numba is pinned; the numpy code serves without it
+    from numba import njit
+except ImportError:  # pragma: no cover
+    njit = None
+
+TWO_PI = 2.0 * math.pi
+
+
+def _one_pose(a):
+    """[x, y, θ] as three Python floats when ``a`` is one float64 pose with a finite heading (math.cos would
+    refuse an infinite one), else None: numpy takes it."""
+    if type(a) is np.ndarray and a.shape == (3,) and a.dtype == np.float64:
+        a = a.tolist()
+    elif not (type(a) in (list, tuple) and len(a) == 3 and all(type(v) is float for v in a)):
+        return None
+    return a if not math.isinf(a[2]) else None
+
+
+def _wrap(theta: float) -> float:
+    """``wrap_angle`` of one float (Python's float modulo is numpy's remainder)."""
+    wrapped = (theta + math.pi) % TWO_PI - math.pi
+    return wrapped + TWO_PI if wrapped <= -math.pi else wrapped
 
 
 def wrap_angle(theta):
@@ -23,6 +52,22 @@ def compose(pose, delta):
         y' = y + sin(θ) dx + cos(θ) dy
         θ' = θ + dθ
     """
+    a, d = _one_pose(pose), _one_pose(delta)
+    if a is not None and d is not None:
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return np.array([a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1], _wrap(a[2] + d[2])])
+    if _compose_kernel is not None and (a is not None or d is not None):  # a stack and one pose
+        pose, delta = np.asarray(pose, dtype=float), np.asarray(delta, dtype=float)
+        if max(pose.ndim, delta.ndim) == 2 and pose.shape[-1] == delta.shape[-1] == 3:
+            pose, delta = np.ascontiguousarray(pose).reshape(-1, 3), np.ascontiguousarray(delta).reshape(-1, 3)
+            out = np.empty((len(delta) if a is not None else len(pose), 3))  # the stack's rows
+            _compose_kernel(pose, delta, out)
+            return out
+    return compose_numpy(pose, delta)
+
+
+def compose_numpy(pose, delta):
+    """``compose`` in numpy (any broadcast shapes): the reference of the other paths."""
     pose = np.asarray(pose, dtype=float)
     delta = np.asarray(delta, dtype=float)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
@@ -35,6 +80,11 @@ def compose(pose, delta):
 
 def relative(pose_from, pose_to):
     """The delta ``d`` with ``compose(pose_from, d) == pose_to`` (``pose_from ⊖ pose_to``)."""
+    a, b = _one_pose(pose_from), _one_pose(pose_to)
+    if a is not None and b is not None:
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2])])
     a = np.asarray(pose_from, dtype=float)
     b = np.asarray(pose_to, dtype=float)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -60,16 +110,33 @@ def integrate_twist(vx: float, vy: float, wz: float, dt: float) -> np.ndarray:
         dx = vx sin(dθ)/ωz − vy (1 − cos dθ)/ωz        (→ vx dt − vy ωz dt²/2  as ωz → 0)
         dy = vx (1 − cos dθ)/ωz + vy sin(dθ)/ωz        (→ vy dt + vx ωz dt²/2  as ωz → 0)
     """
+    return np.array(integrate_twist_floats(vx, vy, wz, dt))
+
+
+def integrate_twist_floats(vx: float, vy: float, wz: float, dt: float) -> tuple[float, float, float]:
+    """``integrate_twist`` as three floats (no array: for loops over a few pieces)."""
     dth = wz * dt
     if abs(dth) < 1e-6:
         c, s = 1.0 - dth * dth / 6.0, 0.5 * dth  # sin(x)/x and (1 - cos x)/x, to second order
-        return np.array([vx * dt * c - vy * dt * s, vx * dt * s + vy * dt * c, dth])
+        return vx * dt * c - vy * dt * s, vx * dt * s + vy * dt * c, dth
     a, b = math.sin(dth) / wz, (1.0 - math.cos(dth)) / wz
-    return np.array([vx * a - vy * b, vx * b + vy * a, dth])
+    return vx * a - vy * b, vx * b + vy * a, dth
 
 
 def integrate_twists(vx, vy, wz, dt) -> np.ndarray:
     """``integrate_twist`` for arrays (broadcast): displacements of shape (..., 3)."""
+    arrays = [np.asarray(v, dtype=float) for v in (vx, vy, wz, dt)]
+    shapes = {a.shape for a in arrays if a.ndim}
+    if _integrate_twists_kernel is None or len(shapes) != 1 or len(next(iter(shapes))) != 1:
+        return integrate_twists_numpy(*arrays)  # all scalars, or shapes numpy broadcasts
+    n = next(iter(shapes))[0]
+    out = np.empty((n, 3))
+    _integrate_twists_kernel(*(np.full(n, a) if a.ndim == 0 else np.ascontiguousarray(a) for a in arrays), out)
+    return out
+
+
+def integrate_twists_numpy(vx, vy, wz, dt) -> np.ndarray:
+    """``integrate_twists`` in numpy: the reference of its compiled loop."""
     vx, vy, wz, dt = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (vx, vy, wz, dt)))
     dth = wz * dt
     small = np.abs(dth) < 1e-6
@@ -102,3 +169,35 @@ def circular_mean(angles, weights=None):
     if weights is None:
         return float(np.arctan2(np.sin(angles).sum(), np.cos(angles).sum()))
     return float(np.arctan2(np.dot(weights, np.sin(angles)), np.dot(weights, np.cos(angles))))
+
+
+if njit is not None:
+    @njit(cache=True, nogil=True)
+    def _compose_kernel(pose, delta, out):  # pragma: no cover - compiled
+        """``compose_numpy`` of (N, 3) with (1, 3) rows, or (1, 3) with (N, 3), into ``out`` (N, 3)."""
+        for i in range(out.shape[0]):
+            p = pose[i if pose.shape[0] > 1 else 0]
+            d = delta[i if delta.shape[0] > 1 else 0]
+            c = math.cos(p[2])
+            s = math.sin(p[2])
+            out[i, 0] = p[0] + c * d[0] - s * d[1]
+            out[i, 1] = p[1] + s * d[0] + c * d[1]
+            w = (p[2] + d[2] + math.pi) % TWO_PI - math.pi
+            out[i, 2] = w + TWO_PI if w <= -math.pi else w
+
+    @njit(cache=True, nogil=True)
+    def _integrate_twists_kernel(vx, vy, wz, dt, out):  # pragma: no cover - compiled
+        """``integrate_twists_numpy`` of 1-D arrays (broadcast views too) into ``out`` (N, 3)."""
+        for i in range(out.shape[0]):
+            dth = wz[i] * dt[i]
+            if abs(dth) < 1e-6:
+                a = dt[i] * (1.0 - dth * dth / 6.0)
+                b = dt[i] * 0.5 * dth
+            else:
+                a = math.sin(dth) / wz[i]
+                b = (1.0 - math.cos(dth)) / wz[i]
+            out[i, 0] = vx[i] * a - vy[i] * b
+            out[i, 1] = vx[i] * b + vy[i] * a
+            out[i, 2] = dth
+else:  # pragma: no cover
+    _compose_kernel = _integrate_twists_kernel = None

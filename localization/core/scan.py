@@ -15,6 +15,7 @@ Invalid ranges (NaN, ±inf, outside [range_min, range_max]) become ``inf``: a ma
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -83,11 +84,22 @@ def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = No
     ``angle_step``-th beam from the first (the course's stride); invalid ranges count as max range
     (``range_min``/``range_max`` replace the scan's own limits when given)."""
     ranges = np.asarray(scan.ranges, dtype=float).ravel()
-    idx = np.arange(0, ranges.size, int(angle_step)) if angle_step > 0 else downsample_indices(ranges.size, num_beams)
-    angles = beam_angles(ranges.size, scan.angle_min, scan.angle_max, scan.angle_increment)[idx]
+    idx, angles = _chosen_beams(ranges.size, float(scan.angle_min), float(scan.angle_max),
+                                float(scan.angle_increment), int(num_beams), int(angle_step))
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max
     return Scan(clean_ranges(ranges[idx], lo, hi), angles, idx)
+
+
+@functools.lru_cache(maxsize=16)
+def _chosen_beams(num_ranges: int, angle_min: float, angle_max: float, angle_increment: float, num_beams: int,
+                  angle_step: int) -> tuple[np.ndarray, np.ndarray]:
+    """``downsample_scan``'s beam indices and their angles (read-only): the same for every scan of a lidar, so
+    they are made once."""
+    idx = np.arange(0, num_ranges, angle_step) if angle_step > 0 else downsample_indices(num_ranges, num_beams)
+    angles = beam_angles(num_ranges, angle_min, angle_max, angle_increment)[idx]
+    idx.flags.writeable = angles.flags.writeable = False
+    return idx, angles
 
 
 def sweep_increment(scan: ScanData) -> float:

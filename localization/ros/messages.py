@@ -103,7 +103,8 @@ def diagnostic_array_msg(status, stamp, name: str, hardware_id: str = "") -> Dia
 def select_particles(particles, max_count: int) -> np.ndarray:
     """The finite rows of ``particles`` (N, 3), thinned to at most ``max_count`` evenly spaced ones."""
     p = np.asarray(particles, dtype=float).reshape(-1, 3)
-    p = p[np.all(np.isfinite(p), axis=1)]
+    if not np.isfinite(p).all():  # one flat pass; the per-row test only when a row is bad
+        p = p[np.isfinite(p).all(axis=1)]
     if max_count <= 0:
         return p[:0]
     if len(p) > max_count:
