@@ -35,6 +35,7 @@ spread as the pieces get finer).
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -123,7 +124,7 @@ class OdometryBuffer:
     def trim(self, before: float, keep: int = 2) -> None:
         """Forget messages whose period ended before ``before`` (keeping the boundary that starts
         the period holding ``before``, and at least ``keep`` messages)."""
-        n = int(np.searchsorted(self._t, before, side="left")) - 1  # self._t[n] < before: still the start
+        n = bisect.bisect_left(self._t, before) - 1  # self._t[n] < before: still the start
         n = min(n, len(self._t) - keep)
         if n > 0:
             self._arrays = None
@@ -144,7 +145,7 @@ class OdometryBuffer:
         before the start; zero beyond the extrapolation limit either side, or when empty)."""
         if not self._t or t <= self._t[0] - self.extrapolation or t >= self._t[-1] + self.extrapolation:
             return np.zeros(3)
-        k = min(int(np.searchsorted(self._as_arrays()[0], t, side="left")), len(self._t) - 1)
+        k = min(bisect.bisect_left(self._t, t), len(self._t) - 1)
         return np.array(self._twist[k])
 
     def segments(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:

@@ -12,6 +12,7 @@ Stamps are ``builtin_interfaces/Time`` messages or float seconds (see ``time_msg
 from __future__ import annotations
 
 import array
+import math
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -25,11 +26,12 @@ from localization.ros.stamps import time_msg
 
 UNKNOWN_VARIANCE = 1e6  # what a non-finite covariance is published as
 COV_INDEX = (0, 1, 5)  # x, y, yaw rows/columns of a 6x6 ROS pose covariance
+_COV_FLAT = np.array([6 * i + j for i in COV_INDEX for j in COV_INDEX])  # their 9 places in the flat 36
 
 
 def finite_pose(pose) -> np.ndarray | None:
     pose = np.asarray(pose, dtype=float).reshape(-1)
-    if pose.size != 3 or not np.all(np.isfinite(pose)):
+    if pose.size != 3 or not all(math.isfinite(v) for v in pose.tolist()):
         return None
     return pose
 
@@ -52,14 +54,13 @@ def covariance_6x6(covariance) -> list[float]:
 
 def covariance_6x6_array(covariance) -> np.ndarray:
     """``covariance_6x6`` as a flat float64 array of 36."""
-    out = np.zeros((6, 6))
+    out = np.zeros(36)
     cov = None if covariance is None else np.asarray(covariance, dtype=float)
-    if cov is None or cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
-        for i in COV_INDEX:
-            out[i, i] = UNKNOWN_VARIANCE
+    if cov is None or cov.shape != (3, 3) or not np.isfinite(cov).all():
+        out[_COV_FLAT[::4]] = UNKNOWN_VARIANCE  # the x, y, yaw diagonal
     else:
-        out[np.ix_(COV_INDEX, COV_INDEX)] = 0.5 * (cov + cov.T)
-    return out.ravel()
+        out[_COV_FLAT] = (0.5 * (cov + cov.T)).ravel()
+    return out
 
 
 def _stamped(msg, pose, covariance, stamp, frame_id: str):
