@@ -56,3 +56,20 @@ def test_the_shipped_car_file_compiles_every_kernel_in_the_child(tmp_path):
     assert ("localization.core.models.motion", "_move_pieces_kernel") in kernels and len(kernels) >= 10
     assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
     assert run_probe(params, tmp_path)["first"] == "cached"
+
+
+def test_several_threads_compile_the_threaded_kernel_in_the_child_too(tmp_path):
+    """``num_threads`` > 1 (a multi-core car, ``localization-replay``'s default): the threaded sensor kernel is
+    compiled by the child as well, so the first sensor update does not stop the node to compile it."""
+    import numba
+    params = {"num_threads": 2}
+    kernels = cc.kernels_for(Parameters(params))
+    threaded = ("localization.core.models.beam_kernels", "fused_kernel_parallel")
+    if numba.config.NUMBA_NUM_THREADS < 2:  # one core: the update runs on one thread, nothing more to compile
+        assert threaded not in kernels
+        return
+    assert threaded in kernels
+    assert threaded not in cc.kernels_for(Parameters())
+    first = run_probe(params, tmp_path)
+    assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
+    assert run_probe(params, tmp_path)["first"] == "cached"

@@ -43,6 +43,7 @@ _MOTION = [("localization.core.models.motion", "_covariance_kernel"),
 _TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
           ("localization.core.raycast.kernels", "chessboard_kernel")]
 _BEAM = [("localization.core.models.beam_kernels", "fused_kernel")]
+_BEAM_THREADS = [("localization.core.models.beam_kernels", "fused_kernel_parallel")]  # num_threads > 1
 _BEAM_SKIP = [("localization.core.models.beam_kernels", "skip_votes"),
               ("localization.core.models.beam_kernels", "masked_sum")]
 _RANGE_SCALE = [("localization.core.models.beam_kernels", "cast_rows"),
@@ -59,9 +60,18 @@ def kernels_for(params) -> list[tuple[str, str]]:
     if params.sensor_model == "likelihood_field":
         return _MOTION + _LIKELIHOOD_FIELD + (_BEAMSKIP if params.do_beamskip else [])
     if params.ray_caster in ("lookup_table", "lookup_table_exact"):
-        return (_MOTION + _TABLE + _BEAM + (_RANGE_SCALE if params.range_scale_estimation else [])
-                + (_BEAM_SKIP if params.do_beamskip else []))
+        return (_MOTION + _TABLE + _BEAM + (_BEAM_THREADS if _threaded(params) else [])
+                + (_RANGE_SCALE if params.range_scale_estimation else []) + (_BEAM_SKIP if params.do_beamskip else []))
     return _MOTION
+
+
+def _threaded(params) -> bool:
+    """Will the sensor update run on several threads (``num_threads`` > 1 and numba's pool has them)?"""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is pinned
+        return False
+    return min(int(params.num_threads), numba.config.NUMBA_NUM_THREADS) > 1
 
 
 def drop_if_older(dispatcher, *sources: str) -> bool:

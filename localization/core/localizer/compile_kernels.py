@@ -22,18 +22,21 @@ def tiny_map():
 
 
 def compile_kernels(params) -> None:
-    """Run a localizer with ``params`` on ``tiny_map``: a tight initial pose (so the cloud counts as converged
+    """Run a localizer with ``params`` on ``tiny_map`` (50 particles, or enough for two threads when
+    ``num_threads`` > 1): a tight initial pose (so the cloud counts as converged
     and learns the range scale), then 0.6 s of driving with odometry at 50 Hz and a scan ray cast in the map
     every 0.1 s. The odometry's stamps are shifted by ``odom_time_offset``, so that on the scan clock it covers
     the scans whatever the robot's calibration (with the car's +0.129 s the first scans came before any
     odometry and the motion kernel was never called: never cached)."""
     from localization.core.localizer import Localizer
+    from localization.core.models.beam import MIN_PARTICLES_PER_THREAD
     from localization.core.odometry import TwistData
     from localization.core.parameters import Parameters
     from localization.core.raycast.exact import ExactRayCaster
     from localization.core.scan import ScanData
-
-    params = Parameters(dict(params), num_particles=50, global_localization=False, adaptive_particles=False,
+    # enough particles for two threads when the parameters ask for several (the threaded kernel compiled too)
+    particles = 2 * MIN_PARTICLES_PER_THREAD if params.num_threads > 1 else 50
+    params = Parameters(dict(params), num_particles=particles, global_localization=False, adaptive_particles=False,
                         update_min_distance=0.0, update_min_angle=0.0)
     loc = Localizer(params)
     occupancy_map = tiny_map()
