@@ -5,8 +5,8 @@ Poses are ``[x, y, theta]`` rows; every function accepts one pose ``(3,)`` or a 
 The filter calls ``compose``, ``relative`` and ``integrate_twists`` many times per scan on one pose or a
 few: there numpy's per-call cost is most of the time, so one pose goes through Python floats and the
 arrays of ``integrate_twists`` (and a stack composed with one pose) through compiled loops, with the
-numpy code's arithmetic in the same order (``*_numpy`` are the references, asserted equal in
-``test/test_geometry_motion.py``).
+numpy code's arithmetic in the same order (``compose_numpy``, ``integrate_twists_numpy`` and ``relative``'s
+numpy code, which takes stacks, are the references, asserted equal in ``test/test_geometry_motion.py``).
 """
 from __future__ import annotations
 
@@ -59,7 +59,8 @@ def compose(pose, delta):
     if _compose_kernel is not None and (a is not None or d is not None):  # a stack and one pose
         pose, delta = np.asarray(pose, dtype=float), np.asarray(delta, dtype=float)
         if max(pose.ndim, delta.ndim) == 2 and pose.shape[-1] == delta.shape[-1] == 3:
-            pose, delta = np.ascontiguousarray(pose).reshape(-1, 3), np.ascontiguousarray(delta).reshape(-1, 3)
+            # C-contiguous and writable: the one signature the compiled loop is cached for
+            pose, delta = (np.require(v, requirements=("C", "W")).reshape(-1, 3) for v in (pose, delta))
             out = np.empty((len(delta) if a is not None else len(pose), 3))  # the stack's rows
             _compose_kernel(pose, delta, out)
             return out
@@ -131,7 +132,8 @@ def integrate_twists(vx, vy, wz, dt) -> np.ndarray:
         return integrate_twists_numpy(*arrays)  # all scalars, or shapes numpy broadcasts
     n = next(iter(shapes))[0]
     out = np.empty((n, 3))
-    _integrate_twists_kernel(*(np.full(n, a) if a.ndim == 0 else np.ascontiguousarray(a) for a in arrays), out)
+    _integrate_twists_kernel(*(np.full(n, a) if a.ndim == 0 else np.require(a, requirements=("C", "W"))
+                               for a in arrays), out)
     return out
 
 
@@ -187,7 +189,7 @@ if njit is not None:
 
     @njit(cache=True, nogil=True)
     def _integrate_twists_kernel(vx, vy, wz, dt, out):  # pragma: no cover - compiled
-        """``integrate_twists_numpy`` of 1-D arrays (broadcast views too) into ``out`` (N, 3)."""
+        """``integrate_twists_numpy`` of four 1-D arrays of N into ``out`` (N, 3)."""
         for i in range(out.shape[0]):
             dth = wz[i] * dt[i]
             if abs(dth) < 1e-6:

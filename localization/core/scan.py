@@ -88,7 +88,8 @@ def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = No
                                 float(scan.angle_increment), int(num_beams), int(angle_step))
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max
-    return Scan(clean_ranges(ranges[idx], lo, hi), angles, idx)
+    # copies: the kept arrays stay untouched, and the compiled kernels see the writable arrays they are cached for
+    return Scan(clean_ranges(ranges[idx], lo, hi), angles.copy(), idx.copy())
 
 
 @functools.lru_cache(maxsize=16)
