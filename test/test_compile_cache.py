@@ -73,3 +73,34 @@ def test_several_threads_compile_the_threaded_kernel_in_the_child_too(tmp_path):
     first = run_probe(params, tmp_path)
     assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
     assert run_probe(params, tmp_path)["first"] == "cached"
+
+
+SIGNATURES = """
+import json, sys
+from numba.core.registry import CPUDispatcher
+from localization.core.localizer.compile_kernels import compile_kernels
+from localization.core.parameters import Parameters
+compile_kernels(Parameters.from_yaml(sys.argv[1]))
+seen = {}
+for name, mod in list(sys.modules.items()):
+    if name.startswith("localization"):
+        for attr, obj in vars(mod).items():
+            if isinstance(obj, CPUDispatcher) and obj.signatures:
+                seen[f"{name}.{attr}"] = [str(s) for s in obj.signatures]
+print(json.dumps(seen))
+"""
+
+
+def test_each_kernel_runs_with_one_signature(tmp_path):
+    """The drive that fills numba's cache (the car's and the simulator's parameter files) calls every kernel
+    with one argument signature, of writable arrays: a second one (a read-only or strided array handed in
+    somewhere) would be compiled in the running node, not loaded from the cache."""
+    from localization.core.paths import config_dir
+    for name in ("real_params.yaml", "params.yaml"):
+        env = dict(os.environ, LOCALIZATION_KERNELS_IN_PROCESS="1", LOCALIZATION_CACHE_DIR=str(tmp_path))
+        out = subprocess.run([sys.executable, "-c", SIGNATURES, str(config_dir() / name)], capture_output=True,
+                             text=True, timeout=600, check=True, env=env)
+        seen = json.loads(out.stdout.strip().splitlines()[-1])
+        assert len(seen) >= 10, seen
+        assert {k: v for k, v in seen.items() if len(v) > 1} == {}
+        assert [k for k, v in seen.items() if "True, aligned" in v[0]] == []  # Array(..., readonly=True, ...)
