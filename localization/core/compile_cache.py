@@ -39,7 +39,10 @@ _MOTION = [("localization.core.models.motion", "_covariance_kernel"),
            ("localization.core.filter.resampling", "resample_kernel"),
            ("localization.core.filter.kernels", "weigh_kernel"),
            ("localization.core.filter.kernels", "estimate_kernel"),
-           ("localization.core.localizer.health", "agreement_kernel")]
+           ("localization.core.localizer.health", "agreement_kernel"),
+           ("localization.core.draws", "_fill_standard_normal"),
+           ("localization.core.geometry", "_compose_kernel"),
+           ("localization.core.geometry", "_integrate_twists_kernel")]
 _TABLE = [("localization.core.raycast.kernels", "cast_kernel"), ("localization.core.raycast.kernels", "build_kernel"),
           ("localization.core.raycast.kernels", "chessboard_kernel")]
 _BEAM = [("localization.core.models.beam_kernels", "fused_kernel")]

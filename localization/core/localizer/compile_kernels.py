@@ -60,6 +60,13 @@ def compile_kernels(params) -> None:
             loc.on_scan(ScanData(t, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 30.0,
                                  time_increment=0.025 / n))
     loc.flush()
+    # what this drive may not reach: the compiled noise draws (a cloud this small draws through numpy, below
+    # their size threshold) and the geometry's loops (a stack composed with one pose: the deskew's)
+    from localization.core.draws import COMPILED_MIN_SIZE, standard_normal_into
+    from localization.core.geometry import compose, integrate_twists
+    standard_normal_into(np.random.default_rng(0), np.empty(COMPILED_MIN_SIZE))
+    compose(np.zeros((2, 3)), np.zeros(3))
+    integrate_twists(np.ones(2), np.zeros(2), np.ones(2), np.ones(2))
 
 
 def main(argv=None) -> int:
