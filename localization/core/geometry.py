@@ -54,8 +54,7 @@ def compose(pose, delta):
     """
     a, d = _one_pose(pose), _one_pose(delta)
     if a is not None and d is not None:
-        c, s = math.cos(a[2]), math.sin(a[2])
-        return np.array([a[0] + c * d[0] - s * d[1], a[1] + s * d[0] + c * d[1], _wrap(a[2] + d[2])])
+        return np.array(compose_floats(a, d))
     if _compose_kernel is not None and (a is not None or d is not None):  # a stack and one pose
         pose, delta = np.asarray(pose, dtype=float), np.asarray(delta, dtype=float)
         if max(pose.ndim, delta.ndim) == 2 and pose.shape[-1] == delta.shape[-1] == 3:
@@ -65,6 +64,12 @@ def compose(pose, delta):
             _compose_kernel(pose, delta, out)
             return out
     return compose_numpy(pose, delta)
+
+
+def compose_floats(pose, delta) -> tuple[float, float, float]:
+    """``compose`` of one pose and one delta given as three floats each (a finite heading), as three floats."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return pose[0] + c * delta[0] - s * delta[1], pose[1] + s * delta[0] + c * delta[1], _wrap(pose[2] + delta[2])
 
 
 def compose_numpy(pose, delta):

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from localization.core.geometry import integrate_twist_floats, inverse
+from localization.core.geometry import compose_floats, integrate_twist_floats, inverse
 
 try:  # the pieces cut in one compiled pass when numba is there (pinned); the numpy reference otherwise
     from numba import njit
@@ -216,14 +216,10 @@ class OdometryBuffer:
             return np.zeros(3)
         if t1 < t0:
             return inverse(self.motion(t1, t0))
-        x = y = th = 0.0  # the pieces' arcs composed in floats (geometry.compose's arithmetic, a few pieces)
+        pose = (0.0, 0.0, 0.0)  # the pieces' arcs composed in floats (a few pieces)
         for dt, (vx, vy, wz) in zip(*(a.tolist() for a in self.segments(t0, t1))):
-            dx, dy, dth = integrate_twist_floats(vx, vy, wz, dt)
-            c, s = math.cos(th), math.sin(th)
-            x, y = x + c * dx - s * dy, y + s * dx + c * dy
-            th = (th + dth + math.pi) % (2.0 * math.pi) - math.pi  # geometry.wrap_angle
-            th = th + 2.0 * math.pi if th <= -math.pi else th
-        return np.array([x, y, th])
+            pose = compose_floats(pose, integrate_twist_floats(vx, vy, wz, dt))
+        return np.array(pose)
 
 
 if njit is not None:

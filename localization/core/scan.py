@@ -88,19 +88,17 @@ def downsample_scan(scan: ScanData, num_beams: int, range_min: float | None = No
                                 float(scan.angle_increment), int(num_beams), int(angle_step))
     lo = scan.range_min if range_min is None else range_min
     hi = scan.range_max if range_max is None else range_max
-    # copies: the kept arrays stay untouched, and the compiled kernels see the writable arrays they are cached for
+    # copies: the kept arrays stay as made whatever a caller does with its own
     return Scan(clean_ranges(ranges[idx], lo, hi), angles.copy(), idx.copy())
 
 
 @functools.lru_cache(maxsize=16)
 def _chosen_beams(num_ranges: int, angle_min: float, angle_max: float, angle_increment: float, num_beams: int,
                   angle_step: int) -> tuple[np.ndarray, np.ndarray]:
-    """``downsample_scan``'s beam indices and their angles (read-only): the same for every scan of a lidar, so
-    they are made once."""
+    """``downsample_scan``'s beam indices and their angles: the same for every scan of a lidar, so they are made
+    once (and handed out as copies)."""
     idx = np.arange(0, num_ranges, angle_step) if angle_step > 0 else downsample_indices(num_ranges, num_beams)
-    angles = beam_angles(num_ranges, angle_min, angle_max, angle_increment)[idx]
-    idx.flags.writeable = angles.flags.writeable = False
-    return idx, angles
+    return idx, beam_angles(num_ranges, angle_min, angle_max, angle_increment)[idx]
 
 
 def sweep_increment(scan: ScanData) -> float:

@@ -22,22 +22,20 @@ def tiny_map():
 
 
 def compile_kernels(params) -> None:
-    """Run a localizer with ``params`` on ``tiny_map`` (50 particles, or enough for two threads when
-    ``num_threads`` > 1): a tight initial pose (so the cloud counts as converged
-    and learns the range scale), then 0.6 s of driving with odometry at 50 Hz and a scan ray cast in the map
-    every 0.1 s. The odometry's stamps are shifted by ``odom_time_offset``, so that on the scan clock it covers
-    the scans whatever the robot's calibration (with the car's +0.129 s the first scans came before any
-    odometry and the motion kernel was never called: never cached)."""
+    """Run a localizer with ``params`` on ``tiny_map`` (512 particles: enough for two threads): a tight initial
+    pose (so the cloud counts as converged and learns the range scale), then 0.6 s of driving with odometry at
+    50 Hz and a scan ray cast in the map every 0.1 s. The odometry's stamps are shifted by ``odom_time_offset``,
+    so that on the scan clock it covers the scans whatever the robot's calibration (with the car's +0.129 s the
+    first scans came before any odometry and the motion kernel was never called: never cached)."""
     from localization.core.localizer import Localizer
     from localization.core.models.beam import MIN_PARTICLES_PER_THREAD
     from localization.core.odometry import TwistData
     from localization.core.parameters import Parameters
     from localization.core.raycast.exact import ExactRayCaster
     from localization.core.scan import ScanData
-    # enough particles for two threads when the parameters ask for several (the threaded kernel compiled too)
-    particles = 2 * MIN_PARTICLES_PER_THREAD if params.num_threads > 1 else 50
-    params = Parameters(dict(params), num_particles=particles, global_localization=False, adaptive_particles=False,
-                        update_min_distance=0.0, update_min_angle=0.0)
+    # enough particles for two threads: with ``num_threads`` > 1 the threaded kernel runs too
+    params = Parameters(dict(params), num_particles=2 * MIN_PARTICLES_PER_THREAD, global_localization=False,
+                        adaptive_particles=False, update_min_distance=0.0, update_min_angle=0.0)
     loc = Localizer(params)
     occupancy_map = tiny_map()
     # the sensor model's own preparation (ensure_compiled points this process's table cache at a scratch
@@ -60,13 +58,12 @@ def compile_kernels(params) -> None:
             loc.on_scan(ScanData(t, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 30.0,
                                  time_increment=0.025 / n))
     loc.flush()
-    # what this drive may not reach: the compiled noise draws (a cloud this small draws through numpy, below
-    # their size threshold) and the geometry's loops (a stack composed with one pose: the deskew's)
+    # what this drive may not reach: the compiled noise draws (none when deterministic without roughening) and a
+    # stack composed with one pose (the deskew's, off in some parameter files)
     from localization.core.draws import COMPILED_MIN_SIZE, standard_normal_into
-    from localization.core.geometry import compose, integrate_twists
+    from localization.core.geometry import compose
     standard_normal_into(np.random.default_rng(0), np.empty(COMPILED_MIN_SIZE))
     compose(np.zeros((2, 3)), np.zeros(3))
-    integrate_twists(np.ones(2), np.zeros(2), np.ones(2), np.ones(2))
 
 
 def main(argv=None) -> int:
