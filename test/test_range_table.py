@@ -330,6 +330,7 @@ def test_bench_quick_json_prints_the_keys(tmp_path):
             assert isinstance(w[key], (int, float)) and w[key] > 0
     assert set(result["fast_vs_exact"]) >= {"median_abs_cells", "p95_abs_cells"}
     assert result["init_cold"]["table_from_cache"] is False and result["init_cached"]["table_from_cache"] is True
+    assert result["cold_jit"] is False and result["large_map"]["cold_jit"] is False  # --quick: numba's own cache
     assert not (tmp_path / "user-cache").exists()  # the benchmark keeps its tables to itself
     big = result["large_map"]  # the 3 x 3 tiled basement, in the same run
     assert big["cells"] >= 20_000_000 and big["caster"] == "TiledLookupTableRayCaster"
