@@ -163,7 +163,7 @@ def run(map_name="stata_basement", theta_bins=None, quick=False, seed=0, progres
     result = {"map": map_name, "theta_bins": theta_bins, "quick": quick, "cold_jit": not quick, "cpus": os.cpu_count(),
               "load_average_start": os.getloadavg()[0]}
 
-    # init: fresh processes, cold (empty table + numba caches) then cached
+    # init: fresh processes, cold (empty table cache; empty numba cache too unless quick) then cached
     say("init probes (fresh processes: cold, then cached) ...")
     template = build_filter(params)  # the filter as the node builds it
     sensor_model, motion_model = template.sensor_model, template.motion_model
