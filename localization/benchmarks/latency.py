@@ -204,8 +204,11 @@ def measure_latency(particles: int | None = 4000, duration: float = 20.0, ray_ca
         cmd += ["-p", f"ray_caster:={ray_caster}"]
     else:
         ray_caster = Parameters.from_yaml(params_file).ray_caster
-    for item in extra_params:  # NAME:=VALUE
+    for item in extra_params:  # NAME:=VALUE (the last word on the particle count is the node's)
         cmd += ["-p", item]
+        name, _, value = item.partition(":=")
+        if name == "num_particles" and value.isdigit():
+            particles = int(value)
     say(f"starting the node ({particles} particles, {ray_caster}) ...")
     node_proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
 

@@ -1,0 +1,19 @@
+"""``benchmarks.per_scan``: the core's CPU per scan on a real bag, stage by stage, and its ``--gap``."""
+from __future__ import annotations
+
+from localization.benchmarks import per_scan
+
+
+def test_per_scan_times_the_stages_and_sleeps_between_scans_untimed(shared_dir, monkeypatch):
+    """With ``gap`` the benchmark sleeps that long after every scan, outside the timed calls: one sleep per
+    scan of every run, none inside a timed stage (the thread CPU time cannot count a sleep anyway)."""
+    slept = []
+    monkeypatch.setattr(per_scan.time, "sleep", lambda s: slept.append(s))
+    r = per_scan.measure("bag3", skip=40, repeat=1, gap=0.02)
+    runs = 2  # a warm-up run, then ``repeat`` timed ones
+    assert r["gap_s"] == 0.02
+    assert len(slept) == runs * (r["scans"] + 40) and set(slept) == {0.02}
+    assert 0 < r["sensor_updates"] <= r["scans"]
+    parts = r["parts"]
+    assert parts["sensor model (kernel)"] > 0 and parts["move"] > 0
+    assert max(parts.values()) < r["ms_per_scan"]  # each stage is a part of the timed feed calls
