@@ -300,25 +300,9 @@ class CorrelativeMatcher:
 
     def _sdf_at(self, g, qg, with_gradient: bool = False):
         """Bilinear signed distance (cells) at the endpoints of grid pose g; optionally its
-        gradient w.r.t. the endpoint (du, dv) and the endpoint's derivative w.r.t. φ."""
-        cphi, sphi = math.cos(g[2]), math.sin(g[2])
-        u = g[0] + cphi * qg[:, 0] - sphi * qg[:, 1]
-        v = g[1] + sphi * qg[:, 0] + cphi * qg[:, 1]
-        h, w = self.sdf.shape
-        x, y = u - 0.5, v - 0.5
-        c0 = np.clip(np.floor(x).astype(np.int64), 0, w - 2)
-        r0 = np.clip(np.floor(y).astype(np.int64), 0, h - 2)
-        fx, fy = np.clip(x - c0, 0, 1), np.clip(y - r0, 0, 1)
-        s00, s01 = self.sdf[r0, c0], self.sdf[r0, c0 + 1]
-        s10, s11 = self.sdf[r0 + 1, c0], self.sdf[r0 + 1, c0 + 1]
-        d = (1 - fy) * ((1 - fx) * s00 + fx * s01) + fy * ((1 - fx) * s10 + fx * s11)
-        if not with_gradient:
-            return d, None
-        gu = (1 - fy) * (s01 - s00) + fy * (s11 - s10)
-        gv = (1 - fx) * (s10 - s00) + fx * (s11 - s01)
-        du_dphi = -sphi * qg[:, 0] - cphi * qg[:, 1]
-        dv_dphi = cphi * qg[:, 0] - sphi * qg[:, 1]
-        return d, (gu, gv, gu * du_dphi + gv * dv_dphi)
+        gradient w.r.t. the endpoint (du, dv) and the endpoint's derivative w.r.t. φ (``kernels.sdf_at``)."""
+        d, gu, gv, gphi = K.sdf_at(self.sdf, g, qg)
+        return (d, (gu, gv, gphi)) if with_gradient else (d, None)
 
     def _refine(self, g, qg, angle_step: float):
         """Gauss–Newton on the Cauchy-weighted signed distance (module doc, step 3); each step's
