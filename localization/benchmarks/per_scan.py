@@ -84,8 +84,7 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
             best = (total, dict(parts), scans, updates)
     total, best_parts, scans, updates = best
     return {"bag": bag, "particles": params.num_particles, "beams": params.num_beams_per_particle, "gap_s": gap,
-            "scans": scans,
-            "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
+            "scans": scans, "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
             "parts": {name: 1e3 * v / scans for name, v in sorted(best_parts.items(), key=lambda kv: -kv[1])},
             "load_average": os.getloadavg()[0]}
 

@@ -121,6 +121,7 @@ if HAVE_NUMBA:
                     if s > best:
                         best, bj, bdu, bdv = s, j, du, dv
         return best, bj, bdu, bdv
+
     @njit(cache=True, nogil=True)
     def _sdf_at_kernel(sdf, g0, g1, g2, qg, d, gu, gv, gphi):  # pragma: no cover - compiled
         """``sdf_at_numpy`` into (n,) arrays, one endpoint at a time: the same operations in the same order.
