@@ -69,6 +69,8 @@ def test_sdf_kernel_equals_numpy_reference_bit_for_bit():
         for a, b in zip(fast, ref):
             assert a.dtype == b.dtype == np.float64
             assert np.array_equal(a, b)
+    for a, b in zip(K.sdf_at(sdf, g, qg.astype(np.float32)), K.sdf_at_numpy(sdf, g, qg.astype(np.float32))):
+        assert np.array_equal(a, b)  # float32 endpoints: numpy's own arithmetic
     qg[5] = np.inf
     with np.errstate(invalid="ignore"):  # numpy's own warnings on the inf endpoint
         for a, b in zip(K.sdf_at(sdf, g, qg), K.sdf_at_numpy(sdf, g, qg)):

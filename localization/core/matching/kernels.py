@@ -154,11 +154,12 @@ if HAVE_NUMBA:
         return True
 
     def sdf_at(sdf, g, qg):
-        """``sdf_at_numpy``, compiled: one pass over the endpoints, the same values bit for bit."""
+        """``sdf_at_numpy``, compiled: one pass over the endpoints, the same values bit for bit (float64
+        endpoints; others, whose arithmetic numpy does in their own type, go to numpy)."""
         n = qg.shape[0]
         d, gu, gv, gphi = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-        if _sdf_at_kernel(sdf, float(g[0]), float(g[1]), float(g[2]), np.ascontiguousarray(qg, dtype=np.float64),
-                          d, gu, gv, gphi):
+        if qg.dtype == np.float64 and _sdf_at_kernel(sdf, float(g[0]), float(g[1]), float(g[2]),
+                                                     np.ascontiguousarray(qg), d, gu, gv, gphi):
             return d, gu, gv, gphi
         return sdf_at_numpy(sdf, g, qg)
 else:  # pragma: no cover
