@@ -213,7 +213,7 @@ def format_report(r: dict) -> str:
         f"large map: Stata basement tiled {r['tiles'][0]} x {r['tiles'][1]} = {r['cells'] / 1e6:.1f} M cells "
         f"({r['free_cells'] / 1e6:.2f} M free), {r['caster']}, {r['particles']} particles",
         f"  init cold: {r['init_cold_s']:.2f} s (set_map {c['set_map_s']:.2f} s, "
-        f"{'JIT compilation included' if r.get('cold_jit', True) else 'kernels from numba cache'}; "
+        f"{'JIT compilation included' if r['cold_jit'] else 'kernels from numba cache'}; "
         f"target <= {INIT_COLD_TARGET_S:g})  {verdict[ok['cold']]}",
         f"  init cached: {r['init_cached_s']:.2f} s (set_map {w['set_map_s']:.2f} s; target <= "
         f"{INIT_CACHED_TARGET_S:g})  {verdict[ok['cached']]}",
