@@ -129,18 +129,21 @@ def test_the_motion_noise_factor_equals_its_numpy_reference():
         np.testing.assert_allclose(factor @ factor.T, cov, rtol=1e-9, atol=1e-12 * np.abs(cov).max())
 
 
-@pytest.mark.parametrize("deterministic", [False, True])
-def test_the_pieces_in_one_pass_move_as_piece_by_piece(deterministic):
-    """MotionModel.evaluate_pieces (one compiled pass) moves a cloud as evaluate() piece by piece, bit for bit, with
-    the same draws: standing pieces (no noise), slips, turns, the heading wrapping."""
+@pytest.mark.parametrize("deterministic,robot", [(False, "ackermann"), (True, "ackermann"), (False, "differential"),
+                                                 (False, "omni")])
+def test_the_pieces_in_one_pass_move_as_piece_by_piece(deterministic, robot):
+    """MotionModel.evaluate_pieces (one compiled call: the noise factors, the draws, one pass over the cloud) moves a
+    cloud as evaluate() piece by piece, bit for bit, with the same draws: standing pieces (no noise), a standing piece
+    that slips, slips, sideways motion (dropped by a differential base), turns, the heading wrapping."""
     from localization.core.models.motion import MotionModel
     particles, _ = cloud(n=500, seed=3)
-    pieces = np.array([[0.04, 0.0, 0.01], [0.0, 0.0, 0.0], [0.05, 0.002, -0.3], [0.03, 0.0, 3.0]])
-    slips = np.array([[0.0, 0.0], [0.0, 0.0], [0.01, 1e-4], [0.0, 0.0]])
-    one, many = (MotionModel(deterministic, np.random.default_rng(9)) for _ in range(2))
+    pieces = np.array([[0.04, 0.0, 0.01], [0.0, 0.0, 0.0], [0.05, 0.002, -0.3], [0.03, 0.0, 3.0], [0.0, 0.0, 0.0],
+                       [0.02, -0.01, 0.0]])
+    slips = np.array([[0.0, 0.0], [0.0, 0.0], [0.01, 1e-4], [0.0, 0.0], [0.002, 1e-6], [0.0, 0.0]])
+    one, many = (MotionModel(deterministic, np.random.default_rng(9), robot_model_type=robot) for _ in range(2))
     ref = particles.copy()
     for piece, (slip, var) in zip(pieces, slips):
         one.evaluate(ref, piece, out=ref, slip=slip, slip_var=var)
-    fast = many.evaluate_pieces(particles, pieces, slips, noise_out=np.empty((4, 500, 3)))
+    fast = many.evaluate_pieces(particles, pieces, slips, noise_out=np.empty((6, 500, 3)))
     assert np.array_equal(fast, ref)
     assert one.rng.random() == many.rng.random()  # the same number of draws

@@ -32,9 +32,7 @@ log = logging.getLogger(__name__)
 
 # the kernels every scan runs (a recovery's challenger moves piece by piece with _move_kernel: compiled on its first
 # use, as the tempered first update's and the global seeder's numpy passes need none)
-_MOTION = [("localization.core.models.motion", "_covariance_kernel"),
-           ("localization.core.models.motion", "_factor_kernel"),
-           ("localization.core.models.motion", "_move_pieces_kernel"),
+_MOTION = [("localization.core.models.motion_kernels", "plan_move_kernel"),
            ("localization.core.odometry", "slip_segments_kernel"),
            ("localization.core.filter.resampling", "resample_kernel"),
            ("localization.core.filter.kernels", "weigh_kernel"),

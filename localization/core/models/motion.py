@@ -58,12 +58,11 @@ import numpy as np
 
 from localization.core.draws import standard_normal_into
 from localization.core.geometry import integrate_twists, wrap_angle
+from localization.core.models.motion_kernels import covariance_kernel as _covariance_kernel
+from localization.core.models.motion_kernels import factor_kernel as _factor_kernel
+from localization.core.models.motion_kernels import move_kernel as _move_kernel
+from localization.core.models.motion_kernels import plan_move_kernel as _plan_move_kernel
 from localization.core.parameters import ROBOT_MODEL_TYPES, default
-
-try:  # a compiled single pass when numba is there (pinned); the numpy code below otherwise
-    from numba import njit
-except ImportError:  # pragma: no cover
-    njit = None
 
 LOG = logging.getLogger("localization.motion")
 
@@ -198,13 +197,17 @@ class MotionModel:
     # ------------------------------------------------------------------ the piece
     def _piece(self, odometry) -> tuple[np.ndarray, float, float, float]:
         """(u, vx, vy, ω): the piece as the robot model allows it and the constant twist (per unit
-        time) that drives it, from ``[dx, dy] = sinc(dθ/2) R(dθ/2) [vx, vy]``, ``dθ = ω``."""
-        u = np.asarray(odometry, dtype=float).reshape(3).copy()
-        w = u[2]
+        time) that drives it (``_piece_floats``)."""
+        u0, u1, u2, vx, vy, w = self._piece_floats(*np.asarray(odometry, dtype=float).reshape(3).tolist())
+        return np.array([u0, u1, u2]), vx, vy, w
+
+    def _piece_floats(self, u0: float, u1: float, w: float) -> tuple[float, float, float, float, float, float]:
+        """(u0, u1, u2, vx, vy, ω) of the piece [u0, u1, ω]: as the robot model allows it, and its constant twist
+        from ``[dx, dy] = sinc(dθ/2) R(dθ/2) [vx, vy]``, ``dθ = ω``."""
         half = 0.5 * w
         k = max(math.sin(half) / half, 1e-3) if abs(half) > 1e-9 else 1.0  # chord / arc length
         c, s = math.cos(half), math.sin(half)
-        vx, vy = (c * u[0] + s * u[1]) / k, (-s * u[0] + c * u[1]) / k
+        vx, vy = (c * u0 + s * u1) / k, (-s * u0 + c * u1) / k
         if not self.robot.keeps_sideways and vy != 0.0:
             if not self._warned_sideways and abs(vy) > 1e-9:
                 LOG.warning("robot_model_type %s: the odometry reports sideways motion (vy %.3g m per piece); a "
@@ -212,22 +215,28 @@ class MotionModel:
                             self.robot.name, vy)
                 self._warned_sideways = True
             vy = 0.0
-            u[0], u[1] = k * c * vx, k * s * vx
-        return u, vx, vy, w
+            u0, u1 = k * c * vx, k * s * vx
+        return u0, u1, w, vx, vy, w
 
-    def _covariance(self, vx: float, vy: float, w: float) -> np.ndarray:
+    def _noise_terms(self, vx: float, vy: float, w: float) -> tuple[float, float, float, float] | None:
+        """(β, q_along, q_across, q_θ) of the module docstring for the twist's piece; None: standing (no noise)."""
         s, r = math.hypot(vx, vy), abs(w)  # arc length (m), angle turned (rad)
         if s < self.still_trans and r < self.still_rot:
-            return np.zeros((3, 3))
+            return None
         amount = s + r
         qa = self.a_trans ** 2 * s + self.a_rot_to_trans ** 2 * r + self.floor_xy ** 2 * amount
         qc = self.a_lateral ** 2 * s + self.a_rot_to_trans ** 2 * r + self.floor_xy ** 2 * amount
         qt = self.a_trans_to_rot ** 2 * s + self.a_rot ** 2 * r + self.floor_theta ** 2 * amount
         beta = math.atan2(vy, vx) if self.robot.travel_frame and s >= self.still_trans else 0.0
-        if _covariance_kernel is not None:  # the same integral, compiled (the numpy below is its reference)
-            return _covariance_kernel(vx, vy, w, beta, qa, qc, qt, _GL_TAU, _GL_W)
-        return covariance_reference(vx, vy, w, beta, qa, qc, qt)
+        return beta, qa, qc, qt
 
+    def _covariance(self, vx: float, vy: float, w: float) -> np.ndarray:
+        terms = self._noise_terms(vx, vy, w)
+        if terms is None:
+            return np.zeros((3, 3))
+        if _covariance_kernel is not None:  # the same integral, compiled (the numpy below is its reference)
+            return _covariance_kernel(vx, vy, w, *terms, _GL_TAU, _GL_W)
+        return covariance_reference(vx, vy, w, *terms)
 
     def noise_covariance(self, odometry) -> np.ndarray:
         """Σ(u) (3, 3): covariance of the robot-frame noise ε for one odometry piece [dx, dy, dθ]."""
@@ -281,33 +290,41 @@ class MotionModel:
         return u, (noise_factor(cov) if cov.any() else None)
 
     def evaluate_pieces(self, particles, pieces, slips, out=None, noise_out=None) -> np.ndarray:
-        """``evaluate`` of each piece (P, 3) in turn with its slip (P, 2: mean, variance), in one compiled pass
-        over the particles: the same noise draws (the noisy pieces', in order, in one call) and the same
-        arithmetic as P calls of ``evaluate``. ``noise_out``: an array (Q, N, 3) or larger to draw into."""
+        """``evaluate`` of each piece (P, 3) in turn with its slip (P, 2: mean, variance), in one compiled call
+        (``_plan_move_kernel``: each piece's noise factor, the noisy pieces' draws in order, one pass over the
+        particles): the same draws and the same arithmetic as P calls of ``evaluate``. ``noise_out``: an array
+        (P, N, 3) or larger to draw into."""
         particles = np.asarray(particles, dtype=float)
+        pieces = np.asarray(pieces, dtype=float).reshape(-1, 3)
+        slips = np.asarray(slips, dtype=float).reshape(-1, 2)
         n = particles.shape[0]
-        plans = [self._plan(d, s, v) for d, (s, v) in zip(np.asarray(pieces, dtype=float).reshape(-1, 3),
-                                                           np.asarray(slips, dtype=float).reshape(-1, 2))]
         if out is None:
             out = np.empty_like(particles)
-        if _move_pieces_kernel is None or particles.ndim != 2:
+        if (_plan_move_kernel is None or particles.shape != (n, 3)
+                or not isinstance(self.rng.bit_generator, np.random.PCG64)):  # the reference: piece by piece
             out[...] = particles
-            for (u, factor), (d, s) in zip(plans, zip(pieces, slips)):
-                self.evaluate(out, d, out=out, slip=s[0], slip_var=s[1])
+            for d, (s, v) in zip(pieces, slips):
+                self.evaluate(out, d, out=out, slip=s, slip_var=v)
             return out
-        noisy = [k for k, (_, factor) in enumerate(plans) if factor is not None]
-        if noisy:
-            fits = noise_out is not None and noise_out.shape[0] >= len(noisy) and noise_out.shape[1:] == (n, 3)
-            noise = noise_out[:len(noisy)] if fits else np.empty((len(noisy), n, 3))
-            standard_normal_into(self.rng, noise)  # the draws of one standard_normal((n, 3)) per noisy piece
-        else:
-            noise = np.zeros((0, n, 3))
-        which = np.full(len(plans), -1, dtype=np.int64)
-        which[noisy] = np.arange(len(noisy))
-        us = np.array([u for u, _ in plans]).reshape(-1, 3)
-        factors = np.array([_NO_FACTOR if f is None else f for _, f in plans]).reshape(-1, 3, 3)
-        _move_pieces_kernel(particles, us, factors, noise, which, out)
+        rows = np.array([self._plan_row(*d, *s) for d, s in zip(pieces.tolist(), slips.tolist())]).reshape(-1, 14)
+        fits = noise_out is not None and noise_out.shape[0] >= len(rows) and noise_out.shape[1:] == (n, 3)
+        _plan_move_kernel(self.rng, particles, rows, _GL_TAU, _GL_W,
+                          noise_out if fits else np.empty((len(rows), n, 3)), out)
         return out
+
+    def _plan_row(self, d0: float, d1: float, d2: float, slip: float, slip_var: float) -> tuple:
+        """What ``_plan`` computes in Python for one piece, as the row ``_plan_move_kernel`` finishes: (u0, u1, u2
+        (the slip's mean added), vx, vy, ω, β, q_along, q_across, q_θ, noisy at all (not deterministic), moving
+        (not standing), slipping, the slip's variance)."""
+        u0, u1, u2, vx, vy, w = self._piece_floats(d0, d1, d2)
+        if self.deterministic:
+            return u0, u1, u2, vx, vy, w, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        terms = self._noise_terms(vx, vy, w)
+        slipping = bool(slip or slip_var)
+        if slipping:
+            u0 += slip
+        return (u0, u1, u2, vx, vy, w, *(terms or (0.0, 0.0, 0.0, 0.0)), 1.0, float(terms is not None),
+                float(slipping), max(slip_var, 0.0))
 
 
 def noise_factor(cov) -> np.ndarray:
@@ -358,112 +375,3 @@ def move_reference(particles, odometry, noise, factor, out) -> np.ndarray:
     out[:, 0] = x
     out[:, 1] = y
     return out
-
-
-if njit is not None:
-    @njit(cache=True, nogil=True)
-    def _move_kernel(particles, odometry, noise, factor, out):  # pragma: no cover - compiled
-        """As ``move_reference``: out[i] = particles[i] ⊕ (odometry + factor · noise[i])."""
-        noisy = noise.shape[0] == particles.shape[0]
-        two_pi = 2.0 * np.pi
-        for i in range(particles.shape[0]):
-            d0 = odometry[0]
-            d1 = odometry[1]
-            d2 = odometry[2]
-            if noisy:
-                n0 = noise[i, 0]
-                n1 = noise[i, 1]
-                n2 = noise[i, 2]
-                d0 = odometry[0] + (factor[0, 0] * n0 + factor[0, 1] * n1 + factor[0, 2] * n2)
-                d1 = odometry[1] + (factor[1, 0] * n0 + factor[1, 1] * n1 + factor[1, 2] * n2)
-                d2 = odometry[2] + (factor[2, 0] * n0 + factor[2, 1] * n1 + factor[2, 2] * n2)
-            th = particles[i, 2]
-            c = math.cos(th)
-            s = math.sin(th)
-            x = particles[i, 0] + c * d0 - s * d1
-            y = particles[i, 1] + s * d0 + c * d1
-            w = th + d2 + np.pi  # as geometry.wrap_angle; the modulo only outside [0, 2π) (the identity there)
-            w = w - np.pi if 0.0 <= w < two_pi else w % two_pi - np.pi
-            if w <= -np.pi:
-                w += two_pi
-            out[i, 0] = x
-            out[i, 1] = y
-            out[i, 2] = w
-    @njit(cache=True, nogil=True)
-    def _covariance_kernel(vx, vy, w, beta, qa, qc, qt, tau, weights):  # pragma: no cover - compiled
-        """As ``covariance_reference``: Σ = Σ_n w_n Φ(τ_n) diag(qa, qc, qt) Φ(τ_n)ᵀ."""
-        def arc(t):  # geometry.integrate_twist(vx, vy, w, t)
-            dth = w * t
-            if abs(dth) < 1e-6:
-                a = t * (1.0 - dth * dth / 6.0)
-                b = t * 0.5 * dth
-            else:
-                a = math.sin(dth) / w
-                b = (1.0 - math.cos(dth)) / w
-            return vx * a - vy * b, vx * b + vy * a
-        ex, ey = arc(1.0)
-        cov = np.zeros((3, 3))
-        phi = np.zeros((3, 3))
-        for n in range(tau.size):
-            px, py = arc(tau[n])
-            ang = w * tau[n] + beta
-            c, s = math.cos(ang), math.sin(ang)
-            phi[0, 0], phi[0, 1], phi[0, 2] = c, -s, -(ey - py)
-            phi[1, 0], phi[1, 1], phi[1, 2] = s, c, ex - px
-            phi[2, 0], phi[2, 1], phi[2, 2] = 0.0, 0.0, 1.0
-            for i in range(3):
-                for k in range(3):
-                    cov[i, k] += weights[n] * (phi[i, 0] * qa * phi[k, 0] + phi[i, 1] * qc * phi[k, 1]
-                                               + phi[i, 2] * qt * phi[k, 2])
-        for i in range(3):
-            for k in range(i + 1, 3):
-                m = 0.5 * (cov[i, k] + cov[k, i])
-                cov[i, k] = m
-                cov[k, i] = m
-        return cov
-    @njit(cache=True, nogil=True)
-    def _move_pieces_kernel(particles, us, factors, noise, which, out):  # pragma: no cover - compiled
-        """``_move_kernel`` of piece p = 0 … P − 1 in turn for each particle (noise[which[p], i]; which[p] < 0:
-        none), in one pass: the same arithmetic."""
-        two_pi = 2.0 * np.pi
-        for i in range(particles.shape[0]):
-            x = particles[i, 0]
-            y = particles[i, 1]
-            th = particles[i, 2]
-            for p in range(us.shape[0]):
-                d0 = us[p, 0]
-                d1 = us[p, 1]
-                d2 = us[p, 2]
-                q = which[p]
-                if q >= 0:
-                    n0 = noise[q, i, 0]
-                    n1 = noise[q, i, 1]
-                    n2 = noise[q, i, 2]
-                    f = factors[p]
-                    d0 = us[p, 0] + (f[0, 0] * n0 + f[0, 1] * n1 + f[0, 2] * n2)
-                    d1 = us[p, 1] + (f[1, 0] * n0 + f[1, 1] * n1 + f[1, 2] * n2)
-                    d2 = us[p, 2] + (f[2, 0] * n0 + f[2, 1] * n1 + f[2, 2] * n2)
-                c = math.cos(th)
-                s = math.sin(th)
-                x, y = x + c * d0 - s * d1, y + s * d0 + c * d1
-                w = th + d2 + np.pi  # as geometry.wrap_angle; the modulo only outside [0, 2π) (the identity there)
-                w = w - np.pi if 0.0 <= w < two_pi else w % two_pi - np.pi
-                th = w + two_pi if w <= -np.pi else w
-            out[i, 0] = x
-            out[i, 1] = y
-            out[i, 2] = th
-
-    @njit(cache=True, nogil=True)
-    def _factor_kernel(cov):  # pragma: no cover - compiled
-        """As ``noise_factor_numpy``."""
-        vals, vecs = np.linalg.eigh(cov)
-        out = np.empty((3, 3))
-        for j in range(3):
-            root = math.sqrt(vals[j]) if vals[j] > 0.0 else 0.0
-            for i in range(3):
-                out[i, j] = vecs[i, j] * root
-        return out
-else:  # pragma: no cover
-    _move_kernel = None
-    _covariance_kernel = None
-    _factor_kernel = _move_pieces_kernel = None
