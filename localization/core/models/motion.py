@@ -195,15 +195,10 @@ class MotionModel:
         self._warned_sideways = False
 
     # ------------------------------------------------------------------ the piece
-    def _piece(self, odometry) -> tuple[np.ndarray, float, float, float]:
-        """(u, vx, vy, ω): the piece as the robot model allows it and the constant twist (per unit
-        time) that drives it (``_piece_floats``)."""
-        u0, u1, u2, vx, vy, w = self._piece_floats(*np.asarray(odometry, dtype=float).reshape(3).tolist())
-        return np.array([u0, u1, u2]), vx, vy, w
-
-    def _piece_floats(self, u0: float, u1: float, w: float) -> tuple[float, float, float, float, float, float]:
-        """(u0, u1, u2, vx, vy, ω) of the piece [u0, u1, ω]: as the robot model allows it, and its constant twist
-        from ``[dx, dy] = sinc(dθ/2) R(dθ/2) [vx, vy]``, ``dθ = ω``."""
+    def _piece(self, u0: float, u1: float, w: float) -> tuple[float, float, float, float, float, float]:
+        """(dx, dy, dθ, vx, vy, ω) of the piece [u0, u1, ω]: the piece as the robot model allows it (a differential
+        base's sideways motion dropped) and the constant twist (per unit time) that drives it, from
+        ``[dx, dy] = sinc(dθ/2) R(dθ/2) [vx, vy]``, ``dθ = ω``."""
         half = 0.5 * w
         k = max(math.sin(half) / half, 1e-3) if abs(half) > 1e-9 else 1.0  # chord / arc length
         c, s = math.cos(half), math.sin(half)
@@ -240,7 +235,7 @@ class MotionModel:
 
     def noise_covariance(self, odometry) -> np.ndarray:
         """Σ(u) (3, 3): covariance of the robot-frame noise ε for one odometry piece [dx, dy, dθ]."""
-        _, vx, vy, w = self._piece(odometry)
+        *_, vx, vy, w = self._piece(*np.asarray(odometry, dtype=float).reshape(3).tolist())
         return self._covariance(vx, vy, w)
 
     def noise_sigmas(self, odometry) -> np.ndarray:
@@ -279,14 +274,16 @@ class MotionModel:
 
     def _plan(self, odometry, slip: float = 0.0, slip_var: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
         """(u, F): a piece's motion as the robot model allows it (with the slip's mean) and its noise factor
-        (F Fᵀ = Σ(u) with the slip's variance; None: no noise, deterministic or standing)."""
-        u, vx, vy, w = self._piece(odometry)
-        if self.deterministic:
+        (F Fᵀ = Σ(u) with the slip's variance; None: no noise, deterministic or standing): ``_plan_row`` finished
+        in numpy, the reference of ``_plan_move_kernel``'s finish."""
+        u0, u1, u2, vx, vy, w, *_, noisy, _, slipping, slip_var = self._plan_row(
+            *np.asarray(odometry, dtype=float).reshape(3).tolist(), slip, slip_var)
+        u = np.array([u0, u1, u2])
+        if not noisy:
             return u, None
         cov = self._covariance(vx, vy, w)
-        if slip or slip_var:  # a skid (or spin) along the robot's heading at the piece's start
-            u[0] += slip
-            cov = cov + np.diag([max(slip_var, 0.0), 0.0, 0.0])
+        if slipping:  # a skid (or spin) along the robot's heading at the piece's start
+            cov = cov + np.diag([slip_var, 0.0, 0.0])
         return u, (noise_factor(cov) if cov.any() else None)
 
     def evaluate_pieces(self, particles, pieces, slips, out=None, noise_out=None) -> np.ndarray:
@@ -313,14 +310,14 @@ class MotionModel:
         return out
 
     def _plan_row(self, d0: float, d1: float, d2: float, slip: float, slip_var: float) -> tuple:
-        """What ``_plan`` computes in Python for one piece, as the row ``_plan_move_kernel`` finishes: (u0, u1, u2
-        (the slip's mean added), vx, vy, ω, β, q_along, q_across, q_θ, noisy at all (not deterministic), moving
-        (not standing), slipping, the slip's variance)."""
-        u0, u1, u2, vx, vy, w = self._piece_floats(d0, d1, d2)
+        """A piece's plan up to its noise terms, in Python floats (``_plan`` and ``_plan_move_kernel`` finish it):
+        (dx, dy, dθ (the slip's mean added), vx, vy, ω, β, q_along, q_across, q_θ, noisy at all (not
+        deterministic), moving (not standing), slipping, the slip's variance (≥ 0))."""
+        u0, u1, u2, vx, vy, w = self._piece(d0, d1, d2)
         if self.deterministic:
             return u0, u1, u2, vx, vy, w, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
         terms = self._noise_terms(vx, vy, w)
-        slipping = bool(slip or slip_var)
+        slipping = bool(slip or slip_var)  # a skid (or spin) along the robot's heading at the piece's start
         if slipping:
             u0 += slip
         return (u0, u1, u2, vx, vy, w, *(terms or (0.0, 0.0, 0.0, 0.0)), 1.0, float(terms is not None),
