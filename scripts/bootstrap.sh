@@ -47,7 +47,12 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$PY" -c "import os, sysconfig; assert os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))" \
     2>/dev/null || missing+=(python3-dev)
   if ((${#missing[@]})); then apt_install "${missing[@]}"; fi
+  # meanwhile, the filter's kernels for the package's parameter files into numba's cache (else the first run
+  # compiles them, one core busy and the other idle)
+  PYTHONPATH="$PWD" "$PY" -m localization.core.compile_cache >"$VENV/compile.log" 2>&1 &
+  compiling=$!
   PYTHON="$PY" bash scripts/build_tf2_msgs.sh
+  wait "$compiling" || echo "bootstrap: kernels not compiled ahead ($VENV/compile.log): the first run compiles them" >&2
   echo "$want" > "$stamp"
 fi
 if ! "$PY" -m pip install --quiet --no-deps -e . >"$VENV/install.log" 2>&1; then

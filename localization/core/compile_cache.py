@@ -133,3 +133,25 @@ def ensure_compiled(params, logger=None) -> str:
         return "in-process"
     logger.info("kernels compiled and cached in %.1f s", time.perf_counter() - t0)
     return "compiled"
+
+
+def main(argv=None) -> int:
+    """``python -m localization.core.compile_cache [PARAMETER_FILE ...]``: the kernels each parameter file uses
+    (default: the package's own, ``config/*params.yaml``) compiled into numba's cache, as their first start
+    would; ``scripts/bootstrap.sh`` runs it while it builds tf2_msgs. Exit status 1 when a set could not be
+    cached."""
+    import argparse
+
+    from localization.core.parameters import Parameters
+    from localization.core.paths import config_dir
+    ap = argparse.ArgumentParser(prog="python -m localization.core.compile_cache", description=main.__doc__)
+    ap.add_argument("files", nargs="*", help="parameter files (default: the package's own)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    files = args.files or sorted(str(f) for f in config_dir().glob("*params.yaml"))
+    sets = {tuple(kernels_for(p)): p for p in (Parameters.from_yaml(f) for f in files)}  # each set once
+    return 0 if all(ensure_compiled(p) in ("cached", "compiled") for p in sets.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
