@@ -31,8 +31,11 @@ import time
 log = logging.getLogger(__name__)
 
 # the kernels every scan runs (a recovery's challenger moves piece by piece with _move_kernel: compiled on its first
-# use, as the tempered first update's and the global seeder's numpy passes need none)
+# use, as the tempered first update's and the global seeder's numpy passes need none), and the piece's covariance and
+# factor, which the challenger's plan calls from Python
 _MOTION = [("localization.core.models.motion_kernels", "plan_move_kernel"),
+           ("localization.core.models.motion_kernels", "covariance_kernel"),
+           ("localization.core.models.motion_kernels", "factor_kernel"),
            ("localization.core.odometry", "slip_segments_kernel"),
            ("localization.core.filter.resampling", "resample_kernel"),
            ("localization.core.filter.kernels", "weigh_kernel"),

@@ -58,12 +58,15 @@ def compile_kernels(params) -> None:
             loc.on_scan(ScanData(t, ranges, angles[0], angles[-1], angles[1] - angles[0], 0.02, 30.0,
                                  time_increment=0.025 / n))
     loc.flush()
-    # what this drive may not reach: the compiled noise draws (none when deterministic without roughening) and a
-    # stack composed with one pose (the deskew's, off in some parameter files)
+    # what this drive may not reach: the compiled noise draws (none when deterministic without roughening), a
+    # stack composed with one pose (the deskew's, off in some parameter files), a piece's covariance and factor as
+    # a recovery's challenger plans them (piece by piece, from Python)
     from localization.core.draws import COMPILED_MIN_SIZE, standard_normal_into
     from localization.core.geometry import compose
+    from localization.core.models.motion import MotionModel, noise_factor
     standard_normal_into(np.random.default_rng(0), np.empty(COMPILED_MIN_SIZE))
     compose(np.zeros((2, 3)), np.zeros(3))
+    noise_factor(MotionModel().noise_covariance([0.1, 0.0, 0.05]))
 
 
 def main(argv=None) -> int:
