@@ -41,7 +41,7 @@ want="$(sha256sum requirements.txt constraints.txt interfaces/tf2_msgs/build-req
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   "$PY" -m pip install --quiet --upgrade pip
   # --no-compile: Python compiles what it imports when it first imports it (pip would byte-compile every
-  # module of every package first: ~20 s here)
+  # module of every package first: ~17 s here)
   "$PY" -m pip install --quiet --no-compile -r requirements.txt -c constraints.txt
   missing=()
   command -v cmake >/dev/null 2>&1 || missing+=(cmake)
