@@ -271,7 +271,6 @@ class MotionModel:
             move_reference(particles, u, noise, factor, out)
         return out
 
-
     def _plan(self, odometry, slip: float = 0.0, slip_var: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
         """(u, F): a piece's motion as the robot model allows it (with the slip's mean) and its noise factor
         (F Fᵀ = Σ(u) with the slip's variance; None: no noise, deterministic or standing): ``_plan_row`` finished
@@ -304,9 +303,10 @@ class MotionModel:
                 self.evaluate(out, d, out=out, slip=s, slip_var=v)
             return out
         rows = np.array([self._plan_row(*d, *s) for d, s in zip(pieces.tolist(), slips.tolist())]).reshape(-1, 14)
-        fits = noise_out is not None and noise_out.shape[0] >= len(rows) and noise_out.shape[1:] == (n, 3)
-        _plan_move_kernel(self.rng, particles, rows, _GL_TAU, _GL_W,
-                          noise_out if fits else np.empty((len(rows), n, 3)), out)
+        room = 0 if self.deterministic else len(rows)  # at most one (N, 3) draw per piece; none when deterministic
+        fits = noise_out is not None and noise_out.shape[0] >= room and noise_out.shape[1:] == (n, 3)
+        _plan_move_kernel(self.rng, particles, rows, _GL_TAU, _GL_W, noise_out if fits else np.empty((room, n, 3)),
+                          out)
         return out
 
     def _plan_row(self, d0: float, d1: float, d2: float, slip: float, slip_var: float) -> tuple:
