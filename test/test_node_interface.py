@@ -392,7 +392,9 @@ def test_cold_start_builds_the_table_off_thread_and_reports_truthfully(runner, d
     # the scans that came during the build could not be used: /diagnostics says so (WARN)
     status = r.node.diagnostic_status()
     assert status.level >= WARN and "scans-dropped" in {p.key for p in status.problems}
-    assert "range table" in status.message and w.scans_dropped == w.scans_waiting_for_table
+    # every scan the build kept from use is counted as such; a scan in flight as the table came may still land
+    # before the initial pose is applied and is counted (and said) as waiting for it
+    assert "range table" in status.message and 0 <= w.scans_dropped - w.scans_waiting_for_table <= 2
     assert h.wait_until(lambda: len(r.probe.snapshot()[0]) > 0, 5.0)  # the first pose once the table is ready
     # the odometry of the build was kept: the first pose is where the car drove meanwhile, not where it started
     first = r.probe.snapshot()[0][0]
