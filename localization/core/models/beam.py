@@ -54,7 +54,7 @@ laser pose at the scan's reference time and δ_b = (dx_b, dy_b, dθ_b) the laser
 beam b's time, in the laser frame (the same for every particle: ``offsets``). Each beam is cast
 from its own origin: dθ_b turns the beam, and (dx_b, dy_b) (a few cm) is added to the laser's
 offset (u, v) from its table cell's centre, which the table query already handles (the wall line
-through the two bins' hit points, ``raycast.kernels.beam_ranges``) — no extra ray casting.
+through the two bins' hit points, ``raycast.kernels.wall_line_range``) — no extra ray casting.
 """
 from __future__ import annotations
 

@@ -9,12 +9,13 @@ import math
 
 import numpy as np
 
-from localization.core.raycast.kernels import C_REFINE, HAVE_NUMBA
+from localization.core.raycast import kernels as K
+from localization.core.raycast.kernels import HAVE_NUMBA
 
 if HAVE_NUMBA:
     from numba import njit, prange
 
-    from localization.core.raycast.kernels import beam_ranges, locate, refine
+    from localization.core.raycast.kernels import beam_ranges, bin_pair, bin_range, locate, refine, wall_line_range
 
 
 if HAVE_NUMBA:
@@ -35,6 +36,9 @@ if HAVE_NUMBA:
         q0s = np.empty(n_beams)
         q1s = np.empty(n_beams)
         cells = np.empty(n_beams)
+        cols = np.empty(n_beams, dtype=np.int64)
+        inv_units, max_cells = consts[K.C_INV_UNITS], consts[K.C_MAX_CELLS]
+        step, cos_step, sin_step = consts[K.C_STEP], consts[K.C_COS_STEP], consts[K.C_SIN_STEP]
         blind = 0.0  # a laser outside free space sees 0 on every beam
         for b in range(n_beams):
             blind += log_rows[b, 0]
@@ -63,19 +67,37 @@ if HAVE_NUMBA:
                     for b in range(n_beams):
                         cols_out[i, b] = 0
                 continue
-            beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
-                        q1s, cells)
-            if consts[C_REFINE] > 0.0:
+            # raycast.kernels.beam_ranges' three passes, here in the body that owns the scratch arrays: as a
+            # called function they compile to slower code (docs/performance.md)
+            row = table[cell]
+            for b in range(n_beams):
+                f = f0 + beam_f[b]
+                fs[b] = f - n_bins if f >= n_bins else f
+            for b in range(n_beams):
+                k0, k1 = bin_pair(fs[b], n_bins)
+                q0s[b] = row[k0]
+                q1s[b] = row[k1]
+            if mode == 2:
+                for b in range(n_beams):
+                    cells[b] = wall_line_range(fs[b], q0s[b], q1s[b], u + beam_du[b], v + beam_dv[b], beam_c[b],
+                                               beam_s[b], inv_units, step, cos_step, sin_step, max_cells)
+            else:
+                for b in range(n_beams):
+                    cells[b] = bin_range(mode, fs[b], q0s[b], q1s[b], u + beam_du[b], v + beam_dv[b], beam_c[b],
+                                         beam_s[b], inv_units, max_cells)
+            if consts[K.C_REFINE] > 0.0:
                 refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_du, beam_dv, beam_c, beam_s, consts, q0s, q1s,
                        cells)
-            total = 0.0
-            for b in range(n_beams):
+            for b in range(n_beams):  # the table columns apart from the sum: this pass compiles to SIMD
                 d = (cells[b] * resolution) * bins_per_metre  # map metres, then table cells as BeamModel.to_cells
                 d = z_max if d > z_max else d
-                col = int(np.rint(d))
-                total += log_rows[b, col]
-                if write:
-                    cols_out[i, b] = col
+                cols[b] = int(np.rint(d))
+            total = 0.0
+            for b in range(n_beams):
+                total += log_rows[b, cols[b]]
+            if write:
+                for b in range(n_beams):
+                    cols_out[i, b] = cols[b]
             out[i] = total / squash_factor
 
     @njit(cache=True, nogil=True)
@@ -125,7 +147,7 @@ if HAVE_NUMBA:
                 continue
             beam_ranges(table[cell], f0, u, v, beam_du, beam_dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s,
                         q1s, cells)
-            if consts[C_REFINE] > 0.0:
+            if consts[K.C_REFINE] > 0.0:
                 refine(blocking, sx + 1.0, sy + 1.0, sc, ss, beam_du, beam_dv, beam_c, beam_s, consts, q0s, q1s,
                        cells)
             for b in range(n_beams):
@@ -156,11 +178,11 @@ if HAVE_NUMBA:
                     total += log_rows[b, cols[i, b]]
             out[i] = total / squash_factor
 
-    # it inlines locate / beam_ranges / refine: their file's changes must reach its cached compilation too
+    # it inlines locate, the per-beam rules, beam_ranges and refine: their file's changes must reach its
+    # cached compilation too
     from localization.core.compile_cache import drop_if_older
-    from localization.core.raycast import kernels as _kernels
     for _kernel in (fused_rows, fused_kernel, fused_kernel_parallel, cast_rows):
-        drop_if_older(_kernel, _kernels.__file__)
+        drop_if_older(_kernel, K.__file__)
 else:  # pragma: no cover
     fused_kernel = fused_kernel_parallel = cast_rows = skip_votes = masked_sum = None
 

@@ -98,6 +98,63 @@ if HAVE_NUMBA:
                 table[i, k] = np.uint16(min(t * units_per_cell + 0.5, 65535.0))
 
     @njit(cache=True, nogil=True)
+    def bin_pair(f, n_bins):  # pragma: no cover - compiled
+        """The two table bins k0, k0 + 1 (mod K) either side of the bin position f in [0, K)."""
+        k0 = int(f)
+        k0 = n_bins - 1 if k0 >= n_bins else k0
+        k1 = k0 + 1
+        return k0, 0 if k1 >= n_bins else k1
+
+    @njit(cache=True, nogil=True)
+    def wall_line_range(f, q0, q1, ub, vb, cb, sb, inv_units, step, cos_step, sin_step,
+                        max_cells):  # pragma: no cover - compiled
+        """One beam's range (cells, in [0, max_cells]), mode 2: on the wall line through the hit points of
+        its two bins (table ranges q0, q1 in table units, ``inv_units`` cells each; ``step`` the bin
+        width, rad), seen from the beam's origin (ub, vb) (cells from the cell centre, sensor frame; the
+        beam along (cb, sb)); the nearest bin's range when the line is unusable (parallel, or a bin at
+        the table's maximum)."""
+        a = f - math.floor(f)
+        along = ub * cb + vb * sb  # the beam origin's offset along the beam ...
+        perp = vb * cb - ub * sb  # ... and across it
+        near = (q0 if a < 0.5 else q1) * inv_units - along
+        r0 = q0 * inv_units
+        r1 = q1 * inv_units
+        al = a * step  # the beam's angle past bin k0, within one bin: short series suffice
+        al2 = al * al
+        sa = al * (1.0 - al2 * (1.0 / 6.0) * (1.0 - al2 * (1.0 / 20.0)))
+        ca = 1.0 - al2 * 0.5 * (1.0 - al2 * (1.0 / 12.0) * (1.0 - al2 * (1.0 / 30.0)))
+        dxp = ca * along - sa * perp  # the offset in the frame of bin k0
+        dyp = ca * perp + sa * along
+        e_x = r1 * cos_step - r0  # hit point of bin k1 minus that of bin k0, same frame
+        e_y = r1 * sin_step
+        den = ca * e_y - sa * e_x
+        lo = q0 if q0 < q1 else q1
+        hi = q0 if q0 > q1 else q1
+        use_line = (den > 1e-9) & (hi < 65535.0)
+        den = den if use_line else 1.0
+        line = ((r0 - dxp) * e_y + dyp * e_x) / den
+        top = hi * inv_units + 1.0
+        bottom = lo * inv_units - 1.0
+        line = top if line > top else line
+        line = bottom if line < bottom else line
+        r = line if use_line else near
+        r = 0.0 if r < 0.0 else r
+        return max_cells if r > max_cells else r
+
+    @njit(cache=True, nogil=True)
+    def bin_range(mode, f, q0, q1, ub, vb, cb, sb, inv_units, max_cells):  # pragma: no cover - compiled
+        """One beam's range (cells, in [0, max_cells]), mode 1: linear in the range between its two bins;
+        mode 0: the nearest bin's (arguments as ``wall_line_range``)."""
+        a = f - math.floor(f)
+        along = ub * cb + vb * sb
+        if mode == 1:  # linear in the range
+            r = ((1.0 - a) * q0 + a * q1) * inv_units - along
+        else:  # nearest bin
+            r = (q0 if a < 0.5 else q1) * inv_units - along
+        r = 0.0 if r < 0.0 else r
+        return max_cells if r > max_cells else r
+
+    @njit(cache=True, nogil=True)
     def beam_ranges(row, f0, u, v, du, dv, beam_f, beam_c, beam_s, consts, mode, fs, q0s, q1s,
                     out):  # pragma: no cover
         """Ranges (cells) of every beam seen from one sensor, into ``out`` (B,).
@@ -107,7 +164,8 @@ if HAVE_NUMBA:
         centre in its own frame (ahead, left); (du[b], dv[b]): beam b's own origin offset from the
         sensor, same frame, in cells (a deskewed sweep; zeros otherwise); ``fs``, ``q0s``, ``q1s``: (B,) scratch. Three
         passes so the arithmetic pass has no gathers or branches and compiles to SIMD: bin
-        positions, table reads, geometry."""
+        positions, table reads, geometry (each beam's rule: ``wall_line_range``, ``bin_range``). The fused
+        sensor kernel runs the same passes in its own body (``models.beam_kernels.fused_rows``)."""
         n_bins = row.size
         n_beams = beam_f.size
         inv_units = consts[C_INV_UNITS]
@@ -116,62 +174,18 @@ if HAVE_NUMBA:
             f = f0 + beam_f[b]
             fs[b] = f - n_bins if f >= n_bins else f
         for b in range(n_beams):
-            k0 = int(fs[b])
-            k0 = n_bins - 1 if k0 >= n_bins else k0
-            k1 = k0 + 1
-            k1 = 0 if k1 >= n_bins else k1
+            k0, k1 = bin_pair(fs[b], n_bins)
             q0s[b] = row[k0]
             q1s[b] = row[k1]
         if mode == 2:  # the wall line through the two bins' hit points; the nearest bin on a miss
-            step = consts[C_STEP]
-            cos_step = consts[C_COS_STEP]
-            sin_step = consts[C_SIN_STEP]
+            step, cos_step, sin_step = consts[C_STEP], consts[C_COS_STEP], consts[C_SIN_STEP]
             for b in range(n_beams):
-                f = fs[b]
-                a = f - math.floor(f)
-                q0 = q0s[b]
-                q1 = q1s[b]
-                cb = beam_c[b]
-                sb = beam_s[b]
-                ub = u + du[b]
-                vb = v + dv[b]
-                along = ub * cb + vb * sb  # the beam origin's offset along the beam ...
-                perp = vb * cb - ub * sb  # ... and across it
-                near = (q0 if a < 0.5 else q1) * inv_units - along
-                r0 = q0 * inv_units
-                r1 = q1 * inv_units
-                al = a * step  # the beam's angle past bin k0, within one bin: short series suffice
-                al2 = al * al
-                sa = al * (1.0 - al2 * (1.0 / 6.0) * (1.0 - al2 * (1.0 / 20.0)))
-                ca = 1.0 - al2 * 0.5 * (1.0 - al2 * (1.0 / 12.0) * (1.0 - al2 * (1.0 / 30.0)))
-                dxp = ca * along - sa * perp  # the offset in the frame of bin k0
-                dyp = ca * perp + sa * along
-                e_x = r1 * cos_step - r0  # hit point of bin k1 minus that of bin k0, same frame
-                e_y = r1 * sin_step
-                den = ca * e_y - sa * e_x
-                lo = q0 if q0 < q1 else q1
-                hi = q0 if q0 > q1 else q1
-                use_line = (den > 1e-9) & (hi < 65535.0)
-                den = den if use_line else 1.0
-                line = ((r0 - dxp) * e_y + dyp * e_x) / den
-                top = hi * inv_units + 1.0
-                bottom = lo * inv_units - 1.0
-                line = top if line > top else line
-                line = bottom if line < bottom else line
-                r = line if use_line else near
-                r = 0.0 if r < 0.0 else r
-                out[b] = max_cells if r > max_cells else r
+                out[b] = wall_line_range(fs[b], q0s[b], q1s[b], u + du[b], v + dv[b], beam_c[b], beam_s[b],
+                                         inv_units, step, cos_step, sin_step, max_cells)
         else:
             for b in range(n_beams):
-                f = fs[b]
-                a = f - math.floor(f)
-                along = (u + du[b]) * beam_c[b] + (v + dv[b]) * beam_s[b]
-                if mode == 1:  # linear in the range
-                    r = ((1.0 - a) * q0s[b] + a * q1s[b]) * inv_units - along
-                else:  # nearest bin
-                    r = (q0s[b] if a < 0.5 else q1s[b]) * inv_units - along
-                r = 0.0 if r < 0.0 else r
-                out[b] = max_cells if r > max_cells else r
+                out[b] = bin_range(mode, fs[b], q0s[b], q1s[b], u + du[b], v + dv[b], beam_c[b], beam_s[b],
+                                   inv_units, max_cells)
 
     @njit(cache=True, nogil=True)
     def refine(blocking, ox, oy, c, s, du, dv, beam_c, beam_s, consts, q0s, q1s, cells):  # pragma: no cover
