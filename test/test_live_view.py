@@ -51,10 +51,11 @@ def _scan(t: float) -> ScanData:
                     angle_increment=4.0 / 99, range_min=0.05, range_max=10.0, frame_id="laser")
 
 
-async def _client(port: int, want: set, seconds: float = 5.0) -> tuple[dict, dict, str]:
+async def _client(port: int, want: set, seconds: float = 5.0, at_least: dict | None = None) -> tuple[dict, dict, str]:
     """Connect, read the advertisements, subscribe to everything, count messages per topic until
-    each topic in ``want`` has one (or ``seconds`` pass). Returns (channels by topic, counts,
-    negotiated subprotocol)."""
+    each topic in ``want`` has one and each topic of ``at_least`` its count (or ``seconds`` pass).
+    Returns (channels by topic, counts, negotiated subprotocol)."""
+    at_least = at_least or {}
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
         channels: dict = {}
         deadline = time.monotonic() + seconds
@@ -69,7 +70,8 @@ async def _client(port: int, want: set, seconds: float = 5.0) -> tuple[dict, dic
             {"id": k, "channelId": channels[topic]["id"]} for k, topic in by_sub.items()]}))
         counts: dict = {}
         payloads: dict = {}
-        while time.monotonic() < deadline and not want <= set(counts):
+        while time.monotonic() < deadline and not (want <= set(counts) and all(
+                counts.get(topic, 0) >= n for topic, n in at_least.items())):
             try:
                 msg = await asyncio.wait_for(ws.recv(), timeout=0.5)
             except asyncio.TimeoutError:
@@ -100,7 +102,8 @@ def test_serves_every_channel_and_delivers_after_subscribing():
         feeder = threading.Thread(target=feed, daemon=True)
         feeder.start()
         try:
-            channels, got, proto = asyncio.run(_client(live.port, set(TOPICS.values())))
+            streaming = {"/scan": 2, "/pf/pose": 2}  # delivered again and again, not only once
+            channels, got, proto = asyncio.run(_client(live.port, set(TOPICS.values()), at_least=streaming))
         finally:
             stop.set()
             feeder.join(5)
