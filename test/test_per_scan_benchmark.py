@@ -17,3 +17,9 @@ def test_per_scan_times_the_stages_and_sleeps_between_scans_untimed(shared_dir, 
     parts = r["parts"]
     assert parts["sensor model (kernel)"] > 0 and parts["move"] > 0
     assert max(parts.values()) < r["ms_per_scan"]  # each stage is a part of the timed feed calls
+
+
+def test_per_scan_runs_a_given_particle_count_updating_on_every_scan(shared_dir):
+    r = per_scan.measure("bag3", skip=40, repeat=1, particles=600)
+    assert r["particles"] == 600
+    assert r["sensor_updates"] == r["scans"] > 0  # the file's update policy skips some; this run none

@@ -1,6 +1,6 @@
 """CPU per scan in the core, stage by stage: a real bag fed to the Localizer as replay feeds it.
 
-    python -m localization.benchmarks.per_scan [--bag bag1] [--skip 40] [--repeat 5] [--gap MS] [--json]
+    python -m localization.benchmarks.per_scan [--bag bag1] [--skip 40] [--repeat 5] [--gap MS] [--particles N] [--json]
 
 RSS bag1 (or another of the real bags) with its robot's parameter file (config/real_params.yaml), a global start
 as ``localization-replay`` makes it, seed 0. The scans after the first ``--skip`` (the global spread has
@@ -14,6 +14,8 @@ deskew. Best of ``--repeat`` runs (the first run warms up). What it costs in cou
 Fed back to back, the scans find the caches and the processor as the last one left them. The live node
 idles between scans (a scan every 25 ms, odometry every 20 ms) while other processes run: ``--gap MS``
 sleeps that long after each scan (outside the timed calls) to measure the core as the node runs it.
+``--particles N`` runs N particles and lets every scan update the filter (``update_min_distance`` and
+``update_min_angle`` 0), as ``benchmarks.latency --particles`` does.
 """
 from __future__ import annotations
 
@@ -25,9 +27,10 @@ import sys
 import time
 
 
-def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0) -> dict:
+def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0,
+            particles: int | None = None) -> dict:
     """{"scans", "sensor_updates", "ms_per_scan", "parts": {name: ms per scan}, "load_average"} (best run);
-    ``gap``: seconds slept after each scan."""
+    ``gap``: seconds slept after each scan; ``particles``: that many, every scan updating (None: the file's)."""
     from localization.bags import open_bag
     from localization.core.localizer import Localizer
     from localization.core.occupancy_map import load_map
@@ -39,7 +42,9 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
     from localization.eval.replay.run import bag_events, laser_mount_params
 
     rb = real_bag(bag)
-    params = Parameters.from_yaml(config_dir() / rb.params, random_seed=0, scan_stamp=rb.scan_stamp)
+    every_scan = {} if particles is None else {"num_particles": particles, "update_min_distance": 0.0,
+                                               "update_min_angle": 0.0}
+    params = Parameters.from_yaml(config_dir() / rb.params, random_seed=0, scan_stamp=rb.scan_stamp, **every_scan)
     occupancy_map = load_map(rb.map)
     with open_bag(real_bag_path(rb.name)) as reader:
         params, _ = laser_mount_params(reader, rb.scan_topic, params)
@@ -111,9 +116,11 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--gap", type=float, default=0.0, metavar="MS",
                     help="milliseconds slept after each scan, as the live node idles between them (default 0)")
+    ap.add_argument("--particles", type=int, default=None, metavar="N",
+                    help="N particles, every scan updating the filter (default: the file's count and update policy)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    r = measure(args.bag, args.skip, args.repeat, args.gap / 1e3)
+    r = measure(args.bag, args.skip, args.repeat, args.gap / 1e3, args.particles)
     if args.json:
         print(json.dumps(r))
         return 0
