@@ -201,6 +201,30 @@ def test_cache_round_trip_is_identical_and_used(tmp_path, monkeypatch):
     assert np.array_equal(first.cast(poses, BEAMS_270), second.cast(poses, BEAMS_270))
 
 
+def test_cached_table_is_mapped_copy_on_write(tmp_path):
+    """A cached table is mapped from its file, not read into memory: an ordinary writable array whose writes
+    never reach the file; a compressed member (a table saved by other means) is read as before."""
+    import zipfile
+    m = room_map()
+    built = LookupTableRayCaster.for_map(m, 3.0, 48, cache_dir=tmp_path).table.copy()
+    table_cache_module.LIVE_TABLES.clear()
+    path = tmp_path / cache_file_name(m, 3.0, 48)
+    loaded = table_cache_module.load_table(path, m, 3.0, 48)
+    assert type(loaded) is np.ndarray and isinstance(loaded.base, np.memmap) and loaded.flags.writeable
+    assert np.array_equal(loaded, built)
+    loaded[0, 0] ^= 1
+    with np.load(path) as data:
+        assert np.array_equal(data["table"], built)  # the file is unchanged
+    squeezed = tmp_path / "compressed.npz"
+    with np.load(path) as data:
+        np.savez_compressed(squeezed, table=data["table"], meta=data["meta"])
+    with zipfile.ZipFile(squeezed) as zf:
+        assert zf.getinfo("table.npy").compress_type == zipfile.ZIP_DEFLATED
+    assert table_cache_module.mapped_member(squeezed, "table.npy") is None
+    again = table_cache_module.load_table(squeezed, m, 3.0, 48)
+    assert not isinstance(again.base, np.memmap) and np.array_equal(again, built)
+
+
 def test_cache_key_covers_map_content_range_and_bins(tmp_path):
     m = room_map()
     other = OccupancyMap(m.data.copy(), m.resolution, m.origin)

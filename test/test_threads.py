@@ -33,3 +33,25 @@ def test_thread_count_rule():
     assert kernel_threads(1, 100_000) == 1
     assert kernel_threads(8, MIN_PARTICLES_PER_THREAD) == 1  # too few particles to share
     assert 1 <= kernel_threads(2, 10 * MIN_PARTICLES_PER_THREAD) <= 2
+
+
+@pytest.mark.parametrize("env, layer", [(None, "workqueue"), ("omp", "omp")])
+def test_threaded_pass_runs_on_the_chosen_layer(env, layer):
+    """The threaded pass runs on numba's work queue (its threads start at once after the node's idle between
+    scans); a layer named in NUMBA_THREADING_LAYER is kept."""
+    import os
+    import subprocess
+    import sys
+    code = ("import numpy as np, numba\n"
+            "from localization.core.models.beam import BeamModel\n"
+            "from localization.core.occupancy_map import load_map\n"
+            "m = load_map('basement_fixed')\n"
+            "p = m.sample_free_poses(2000, np.random.default_rng(0))\n"
+            "BeamModel(occupancy_map=m, num_threads=2).log_likelihood(p, np.full(30, 3.0))\n"
+            "print(numba.threading_layer())\n")
+    environ = {k: v for k, v in os.environ.items() if k != "NUMBA_THREADING_LAYER"}
+    if env is not None:
+        environ["NUMBA_THREADING_LAYER"] = env
+    out = subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == layer

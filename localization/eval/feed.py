@@ -26,11 +26,14 @@ import numpy as np
 
 from localization.core.localizer import Localizer, PoseEstimate, ScanResult
 from localization.core.localizer.health import AgreementScorer
+from localization.core.models.beam_kernels import choose_threading_layer
 from localization.core.occupancy_map import OccupancyMap
 from localization.core.odometry import TwistData
 from localization.core.parameters import Parameters
 from localization.core.publish_rule import ForwardInTime, Verdict
 from localization.core.scan import ScanData, beam_angles
+
+choose_threading_layer("omp")  # a feed runs its sensor updates back to back, with no idle between them
 
 
 def make_scorer(occupancy_map: OccupancyMap, params: Parameters) -> AgreementScorer:

@@ -6,16 +6,36 @@ numpy reference, asserted equal in the tests.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
 from localization.core.raycast import kernels as K
 from localization.core.raycast.kernels import HAVE_NUMBA
 
+
+def choose_threading_layer(layer: str = "workqueue") -> str:
+    """numba's threading layer for ``fused_kernel_parallel``, unless NUMBA_THREADING_LAYER names one; numba
+    fixes it when its pool first starts, so a later call changes nothing. ``"workqueue"`` (chosen at import):
+    its threads wait on a condition variable and start at once after an idle, as the live node's between
+    scans; OpenMP's threads (``"omp"``) spin, then sleep, and a pass after such an idle took milliseconds
+    longer on two threads than on one. ``"omp"`` suits passes run back to back (a replay), where its
+    spinning threads start sooner; it is also safe to call from several threads at once, the work
+    queue is not (docs/performance.md)."""
+    if not HAVE_NUMBA:
+        return "none"
+    from numba.core import config
+    if not os.environ.get("NUMBA_THREADING_LAYER"):
+        config.THREADING_LAYER = layer
+    return str(config.THREADING_LAYER)
+
+
 if HAVE_NUMBA:
     from numba import njit, prange
 
     from localization.core.raycast.kernels import beam_ranges, bin_pair, bin_range, locate, refine, wall_line_range
+
+    choose_threading_layer()
 
 
 if HAVE_NUMBA:

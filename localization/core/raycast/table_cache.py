@@ -5,13 +5,17 @@ from its YAML or received as a nav_msgs/OccupancyGrid (float32 resolution).
 Files are written atomically (``paths.atomic_write``) so a crash or a concurrent writer never
 leaves half a table; a stale or unreadable file only costs a rebuild. Tables alive in this
 process are shared by cache name: a second caster for the same map (a map message sent again,
-another filter) reuses the table instead of reading a second copy.
+another filter) reuses the table instead of reading a second copy. A cached table is mapped from its file
+(copy on write), not read: a process holds in memory only the rows its particles reach, and the start
+does not wait for the whole file.
 """
 from __future__ import annotations
 
 import json
 import logging
 import math
+import mmap
+import struct
 import weakref
 import zipfile
 from pathlib import Path
@@ -71,13 +75,46 @@ def load_table(path: Path, occupancy_map: OccupancyMap, max_range: float, theta_
             if not meta_matches(meta, expected):
                 log.warning("range table cache %s does not match this map/parameters: rebuilding", path)
                 return None
-            table = data["table"]
+            table = mapped_member(path, "table.npy")
+            if table is None:
+                table = data["table"]
         if table.dtype != np.uint16 or table.shape != (expected["num_free"], theta_bins):
             raise ValueError(f"table has dtype {table.dtype} shape {table.shape}")
         return table
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         log.warning("unreadable range table cache %s (%s): rebuilding", path, exc)
         return None
+
+
+ZIP_LOCAL_HEADER = struct.Struct("<4s5H3I2H")  # a zip member's local header (30 bytes); the last two: name, extra
+
+
+def mapped_member(path: Path, member: str) -> np.ndarray | None:
+    """The ``.npy`` array stored uncompressed as ``member`` of the zip at ``path``, mapped copy on write
+    (an ordinary writable ndarray whose pages are read from the file when first touched; the file's
+    pages are asked for ahead, in the background); None when the member is compressed or its
+    header is not a plain array's."""
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(member)
+    if info.compress_type != zipfile.ZIP_STORED:
+        return None
+    with open(path, "rb") as f:
+        f.seek(info.header_offset)
+        header = ZIP_LOCAL_HEADER.unpack(f.read(ZIP_LOCAL_HEADER.size))
+        f.seek(info.header_offset + ZIP_LOCAL_HEADER.size + header[-2] + header[-1])
+        version = np.lib.format.read_magic(f)
+        if version not in ((1, 0), (2, 0)):
+            return None
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read_header(f)
+        offset = f.tell()
+    if fortran or dtype.hasobject or offset + math.prod(shape) * dtype.itemsize > info.header_offset \
+            + ZIP_LOCAL_HEADER.size + header[-2] + header[-1] + info.file_size:
+        return None
+    mapped = np.memmap(path, dtype=dtype, mode="c", shape=shape, offset=offset)
+    if hasattr(mmap, "MADV_WILLNEED"):
+        mapped._mmap.madvise(mmap.MADV_WILLNEED)
+    return np.asarray(mapped)
 
 
 WRITE_CHUNK_BYTES = 1 << 20  # the table goes to disk 1 MiB at a time (np.savez copies 16 MiB pieces)
