@@ -219,8 +219,9 @@ def test_cached_table_is_mapped_copy_on_write(tmp_path):
     with np.load(path) as data:
         np.savez_compressed(squeezed, table=data["table"], meta=data["meta"])
     with zipfile.ZipFile(squeezed) as zf:
-        assert zf.getinfo("table.npy").compress_type == zipfile.ZIP_DEFLATED
-    assert table_cache_module.mapped_member(squeezed, "table.npy") is None
+        info = zf.getinfo("table.npy")
+    assert info.compress_type == zipfile.ZIP_DEFLATED
+    assert table_cache_module.mapped_member(squeezed, info) is None
     again = table_cache_module.load_table(squeezed, m, 3.0, 48)
     assert not isinstance(again.base, np.memmap) and np.array_equal(again, built)
 

@@ -75,7 +75,7 @@ def load_table(path: Path, occupancy_map: OccupancyMap, max_range: float, theta_
             if not meta_matches(meta, expected):
                 log.warning("range table cache %s does not match this map/parameters: rebuilding", path)
                 return None
-            table = mapped_member(path, "table.npy")
+            table = mapped_member(path, data.zip.getinfo("table.npy"))
             if table is None:
                 table = data["table"]
         if table.dtype != np.uint16 or table.shape != (expected["num_free"], theta_bins):
@@ -89,27 +89,25 @@ def load_table(path: Path, occupancy_map: OccupancyMap, max_range: float, theta_
 ZIP_LOCAL_HEADER = struct.Struct("<4s5H3I2H")  # a zip member's local header (30 bytes); the last two: name, extra
 
 
-def mapped_member(path: Path, member: str) -> np.ndarray | None:
-    """The ``.npy`` array stored uncompressed as ``member`` of the zip at ``path``, mapped copy on write
-    (an ordinary writable ndarray whose pages are read from the file when first touched; the file's
-    pages are asked for ahead, in the background); None when the member is compressed or its
-    header is not a plain array's."""
-    with zipfile.ZipFile(path) as zf:
-        info = zf.getinfo(member)
+def mapped_member(path: Path, info: zipfile.ZipInfo) -> np.ndarray | None:
+    """The ``.npy`` array stored uncompressed as the member ``info`` of the zip at ``path``, mapped copy on
+    write (an ordinary writable ndarray whose pages are read from the file when first touched; the file's
+    pages are asked for ahead, in the background); None when the member is compressed or its header is
+    not a plain array's."""
     if info.compress_type != zipfile.ZIP_STORED:
         return None
     with open(path, "rb") as f:
         f.seek(info.header_offset)
-        header = ZIP_LOCAL_HEADER.unpack(f.read(ZIP_LOCAL_HEADER.size))
-        f.seek(info.header_offset + ZIP_LOCAL_HEADER.size + header[-2] + header[-1])
+        *_, name_len, extra_len = ZIP_LOCAL_HEADER.unpack(f.read(ZIP_LOCAL_HEADER.size))
+        start = info.header_offset + ZIP_LOCAL_HEADER.size + name_len + extra_len  # the member's bytes
+        f.seek(start)
         version = np.lib.format.read_magic(f)
         if version not in ((1, 0), (2, 0)):
             return None
         read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         shape, fortran, dtype = read_header(f)
         offset = f.tell()
-    if fortran or dtype.hasobject or offset + math.prod(shape) * dtype.itemsize > info.header_offset \
-            + ZIP_LOCAL_HEADER.size + header[-2] + header[-1] + info.file_size:
+    if fortran or dtype.hasobject or offset + math.prod(shape) * dtype.itemsize > start + info.file_size:
         return None
     mapped = np.memmap(path, dtype=dtype, mode="c", shape=shape, offset=offset)
     if hasattr(mmap, "MADV_WILLNEED"):
