@@ -208,6 +208,30 @@ def test_missing_or_bad_bag_raises_bag_error(tmp_path):
         open_bag(tmp_path / "notes.txt")
 
 
+def test_bag_without_definitions_reads_with_jazzy_types_built_on_demand(tmp_path, monkeypatch):
+    """A bag that carries its own definitions is opened without building the Jazzy type store; one that
+    carries none (an old rosbag2 sqlite3 bag) is read with Jazzy's."""
+    import localization.bags.reader as reader
+    path = tmp_path / "with_defs"
+    written = write_sample_bag(path)  # the writer uses the Jazzy store: forget it
+    monkeypatch.setattr(reader, "_JAZZY", None)
+    with open_bag(path) as bag:
+        assert len(list(bag.messages(["/scan"]))) == N_SCANS
+    assert reader._JAZZY is None  # its own definitions sufficed
+
+    import sqlite3
+    bare = tmp_path / "no_defs"
+    write_sample_bag(bare)
+    for db in bare.glob("*.db3"):  # as a bag recorded before rosbag2 stored definitions
+        with sqlite3.connect(db) as con:
+            con.execute("DELETE FROM message_definitions")
+    monkeypatch.setattr(reader, "_JAZZY", None)
+    msgs = list(read_messages(bare, ["/odom"]))
+    assert [m.msg.pose.pose.position.x for m in msgs] == pytest.approx([0.1 * k for k in range(N_ODOM)])
+    assert [m.t_ns for m in msgs] == written["/odom"]
+    assert reader._JAZZY is not None  # built for it
+
+
 # ---------------------------------------------------------------------------------------------
 # The real ROS 1 recordings
 # ---------------------------------------------------------------------------------------------

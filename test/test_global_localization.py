@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from localization.benchmarks import robustness as RB
-from localization.core.filter.global_init import ScanSeedParams, lattice_positions, seed_from_scan, subset_beams
+from localization.core.filter.global_init import (
+    ScanSeedParams,
+    lattice_poses,
+    lattice_positions,
+    seed_from_scan,
+    subset_beams,
+)
 from localization.core.geometry import compose, wrap_angle
 from localization.core.localizer import Localizer
 from localization.core.models.beam import BeamModel
@@ -37,6 +43,18 @@ def test_lattice_and_beam_subset():
     r = np.array([1.0, np.inf, 2.0, np.nan, 3.0, 4.0])
     z, a = subset_beams(r, np.arange(6.0), 3)
     assert np.isfinite(z).all() and list(a) == [0.0, 4.0, 5.0]
+
+
+def test_lattice_poses_in_chunks_are_the_indexed_poses():
+    """Pose i of the lattice is position i // H with heading i % H, for chunks cut anywhere."""
+    rng = np.random.default_rng(3)
+    xy, theta = rng.uniform(-5.0, 5.0, (23, 2)), rng.uniform(-np.pi, np.pi, 7)
+    total = len(xy) * len(theta)
+    for start, count in [(0, total), (0, 1), (5, 9), (6, 7), (7, 14), (100, total - 100), (total - 1, 1)]:
+        idx = np.arange(start, start + count)
+        got = lattice_poses(xy, theta, start, count)
+        assert got.flags.c_contiguous and got.shape == (count, 3)
+        np.testing.assert_array_equal(got, np.column_stack([xy[idx // 7], theta[idx % 7]]))
 
 
 @pytest.mark.parametrize("model_name", ["beam", "likelihood_field"])

@@ -4,7 +4,7 @@ import pytest
 from helpers import corridor_map, occupancy_grid_msg
 from PIL import Image
 
-from localization.core.occupancy_map import MapError, OccupancyMap, occupancy_from_pixels
+from localization.core.occupancy_map import MapError, OccupancyMap, grid_from_image, occupancy_from_pixels
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +52,29 @@ def test_map_server_thresholds_and_negate():
     assert occupancy_from_pixels(px, True, 0.65, 0.196).tolist() == [[0, -1, 100, 100, 100]]
     scaled = occupancy_from_pixels(px, False, 0.65, 0.196, "scale")
     assert scaled[0, 0] == 100 and 0 < scaled[0, 1] < 100 and scaled[0, 4] == 0
+
+
+@pytest.mark.parametrize("channels", [0, 2, 3, 4])
+@pytest.mark.parametrize("mode", ["trinary", "scale", "raw"])
+@pytest.mark.parametrize("negate", [False, True])
+def test_image_table_equals_the_float_pass(channels, mode, negate):
+    """An 8-bit image through the table of its possible values gives map_server's float pass exactly
+    (colour: the mean of the colour channels, alpha ignored)."""
+    rng = np.random.default_rng(channels)
+    shape = (37, 41) if channels == 0 else (37, 41, channels)
+    pixels = rng.integers(0, 256, shape, dtype=np.uint8)
+    pixels.reshape(-1)[:256] = np.arange(256)  # every grey level
+    if channels == 0:
+        grey = pixels.astype(float)
+    else:
+        grey = pixels[..., :3].mean(axis=2) if channels >= 3 else pixels[..., 0].astype(float)
+    expected = occupancy_from_pixels(grey, negate, 0.65, 0.196, mode)
+    got = grid_from_image(pixels, negate, 0.65, 0.196, mode)
+    assert got.dtype == expected.dtype == np.int8
+    np.testing.assert_array_equal(got, expected)
+    assert len(np.unique(got)) > 2  # occupied, free and unknown (scale: the levels between) all present
+    # a 16-bit image takes the float pass
+    np.testing.assert_array_equal(grid_from_image(pixels.astype(np.uint16), negate, 0.65, 0.196, mode), expected)
 
 
 def test_from_msg_matches_from_yaml(stata):

@@ -80,6 +80,18 @@ def lattice_positions(occupancy_map: OccupancyMap, step: float, rng: np.random.G
     return occupancy_map.grid_to_world(picked[:, ::-1].astype(float))
 
 
+def lattice_poses(xy: np.ndarray, theta: np.ndarray, start: int, count: int) -> np.ndarray:
+    """Lattice poses ``start`` … ``start + count − 1`` (C-contiguous (count, 3)): pose i is position
+    xy[i // H] with heading theta[i % H], H = len(theta). The positions they span are written once per
+    heading (a broadcast copy, no index arrays)."""
+    h = theta.size
+    first, last = start // h, (start + count - 1) // h + 1
+    block = np.empty((last - first, h, 3))
+    block[:, :, :2] = xy[first:last, None, :]
+    block[:, :, 2] = theta
+    return block.reshape(-1, 3)[start - first * h:start - first * h + count]
+
+
 def subset_beams(ranges, angles, count: int):
     """``count`` beams evenly spread over the valid (finite) ones."""
     ranges = np.asarray(ranges, dtype=float).ravel()
@@ -112,7 +124,7 @@ def seed_from_scan(occupancy_map: OccupancyMap, sensor_model: SensorModel, range
     best_ll, best = np.empty(0), np.empty(0, dtype=np.int64)
     for start in range(0, total, chunk):  # pose i: position i // h, heading i % h
         idx = np.arange(start, min(total, start + chunk))
-        poses = np.column_stack([xy[idx // h], theta[idx % h]])
+        poses = lattice_poses(xy, theta, start, idx.size)
         with sensor_model.scratch():
             scores = sensor_model.log_likelihood(poses, z, a, range_max=range_max)
         scores[~np.isfinite(scores)] = -np.inf
