@@ -77,7 +77,7 @@ case "$action" in
   run)   exec localization-demo --overwrite "$@" ;;  # re-running replaces demo-results/
   test)  # the tuner's PostgreSQL test starts a throwaway server: initdb and pg_ctl of the Debian package
          if ! compgen -G "/usr/lib/postgresql/*/bin/initdb" >/dev/null; then apt_install postgresql; fi
-         exec "$PY" -m pytest -q "$@" ;;
+         exec "$PY" -m pytest -q --durations=15 "$@" ;;  # the slowest tests listed at the end
   setup) echo "bootstrap: $VENV is ready (ROS_DOMAIN_ID=$ROS_DOMAIN_ID)" ;;
   *)     echo "usage: scripts/bootstrap.sh {run|test|setup} [args...]" >&2; exit 2 ;;
 esac

@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+
+import pytest
 
 from localization.core import compile_cache as cc
 from localization.core.parameters import Parameters
@@ -35,29 +38,33 @@ def test_every_listed_kernel_exists_and_has_a_disk_cache():
         assert all(cc.is_cached(m, n) is not None for m, n in cc.kernels_for(params))
 
 
-def test_a_cold_cache_is_filled_by_a_child_then_only_loaded(tmp_path):
-    first = run_probe({}, tmp_path)
-    assert first["before"] == [False] * len(cc.kernels_for(Parameters()))
-    assert first["first"] == "compiled"
-    second = run_probe({}, tmp_path)
-    assert second["before"] == [True] * len(cc.kernels_for(Parameters())) and second["first"] == "cached"
-    # another model's kernels are not in the cache yet: compiled by a child too
-    lf = run_probe({"sensor_model": "likelihood_field"}, tmp_path)
-    assert lf["first"] == "compiled"
-
-
-def test_the_shipped_car_file_compiles_every_kernel_in_the_child(tmp_path):
-    """config/real_params.yaml (odometry stamps 0.129 s ahead on the scan clock, the range scale learnt online):
-    the child's drive reaches every kernel the car runs, so none is left to compile in the node's process."""
+@pytest.fixture(scope="module")
+def car_cache(tmp_path_factory):
+    """numba's cache filled from empty by a child for config/real_params.yaml, then probed again: the folder,
+    the car file's parameters and both probes' answers. The tests below start from copies of it."""
     from localization.core.paths import config_dir
+    folder = tmp_path_factory.mktemp("numba-car")
     params = dict(Parameters.from_yaml(config_dir() / "real_params.yaml"))
-    first = run_probe(params, tmp_path)
+    return folder, params, run_probe(params, folder), run_probe(params, folder)
+
+
+def copy_of(folder, tmp_path):
+    shutil.copytree(folder, tmp_path / "numba")
+    return tmp_path / "numba"
+
+
+def test_the_shipped_car_file_compiles_every_kernel_in_the_child(car_cache):
+    """config/real_params.yaml (odometry stamps 0.129 s ahead on the scan clock, the range scale learnt online),
+    from an empty cache: the child's drive reaches every kernel the car runs, so none is left to compile in the
+    node's process, and the next start only loads them."""
+    from localization.core.paths import config_dir
+    folder, params, first, second = car_cache
     kernels = cc.kernels_for(Parameters(params))
     assert ("localization.core.models.motion_kernels", "plan_move_kernel") in kernels and len(kernels) >= 8
     assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
-    assert run_probe(params, tmp_path)["first"] == "cached"
+    assert second["before"] == [True] * len(kernels) and second["first"] == "cached"
     # what scripts/bootstrap.sh runs ahead: the command finds the car file's kernels cached
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(folder))
     env.pop("LOCALIZATION_KERNELS_IN_PROCESS", None)
     out = subprocess.run([sys.executable, "-m", "localization.core.compile_cache",
                           str(config_dir() / "real_params.yaml")],
@@ -65,11 +72,23 @@ def test_the_shipped_car_file_compiles_every_kernel_in_the_child(tmp_path):
     assert out.returncode == 0 and "compiling" not in out.stderr
 
 
-def test_several_threads_compile_the_threaded_kernel_in_the_child_too(tmp_path):
+def test_another_models_kernels_are_compiled_by_a_child_then_only_loaded(car_cache, tmp_path):
+    """The likelihood field's kernels are not among the car's: a child compiles them into the cache that
+    holds the car's, and the next start only loads them."""
+    folder = copy_of(car_cache[0], tmp_path)
+    params = {"sensor_model": "likelihood_field"}
+    kernels = cc.kernels_for(Parameters(params))
+    first = run_probe(params, folder)
+    assert not all(first["before"]) and first["first"] == "compiled"
+    second = run_probe(params, folder)
+    assert second["before"] == [True] * len(kernels) and second["first"] == "cached"
+
+
+def test_several_threads_compile_the_threaded_kernel_in_the_child_too(car_cache, tmp_path):
     """``num_threads`` > 1 (a multi-core car, ``localization-replay``'s default): the threaded sensor kernel is
     compiled by the child as well, so the first sensor update does not stop the node to compile it."""
     import numba
-    params = {"num_threads": 2}
+    params = {**car_cache[1], "num_threads": 2}
     kernels = cc.kernels_for(Parameters(params))
     threaded = ("localization.core.models.beam_kernels", "fused_kernel_parallel")
     if numba.config.NUMBA_NUM_THREADS < 2:  # one core: the update runs on one thread, nothing more to compile
@@ -77,9 +96,10 @@ def test_several_threads_compile_the_threaded_kernel_in_the_child_too(tmp_path):
         return
     assert threaded in kernels
     assert threaded not in cc.kernels_for(Parameters())
-    first = run_probe(params, tmp_path)
-    assert first["before"] == [False] * len(kernels) and first["first"] == "compiled"
-    assert run_probe(params, tmp_path)["first"] == "cached"
+    folder = copy_of(car_cache[0], tmp_path)
+    first = run_probe(params, folder)
+    assert first["before"] == [k != threaded for k in kernels] and first["first"] == "compiled"
+    assert run_probe(params, folder)["first"] == "cached"
 
 
 SIGNATURES = """
