@@ -44,17 +44,20 @@ from localization.sim import simulate
 # ------------------------------------------------------------------ kernels
 
 
-def test_score_kernel_equals_numpy_reference():
+@pytest.mark.parametrize("low, high", [(-5, 95), (8, 82)], ids=["partly-off-the-grid", "inside"])
+def test_score_kernel_equals_numpy_reference_bit_for_bit(low, high):
+    """Candidates with endpoints off the grid (tested beam by beam) and wholly inside it (summed without
+    the test): the same bits as the reference's running sum."""
     rng = np.random.default_rng(0)
     grid = rng.random((80, 90)).astype(np.float32)
-    cols = rng.integers(-5, 95, (7, 300)).astype(np.int64)
-    rows = rng.integers(-5, 85, (7, 300)).astype(np.int64)
+    cols = rng.integers(low, high, (7, 300)).astype(np.int64)
+    rows = rng.integers(low, high - 10, (7, 300)).astype(np.int64)
     cj = rng.integers(0, 7, 500).astype(np.int64)
-    cu = rng.integers(-6, 7, 500).astype(np.int64)
-    cv = rng.integers(-6, 7, 500).astype(np.int64)
+    cu = rng.integers(-12, 13, 500).astype(np.int64)  # "inside": some shifts take the endpoints just past the edges
+    cv = rng.integers(-12, 13, 500).astype(np.int64)
     fast = K.score_candidates(grid, cols, rows, cj, cu, cv)
     ref = K.score_candidates_numpy(grid, cols, rows, cj, cu, cv)
-    np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(fast, ref)
 
 
 def test_sdf_kernel_equals_numpy_reference_bit_for_bit():
@@ -110,10 +113,33 @@ def test_branch_and_bound_equals_exhaustive_search():
     args = (matcher.L, cols, rows, jj[order], uu[order], vv[order], bounds[order], k, W)
     fast = K.branch_and_bound(*args)
     ref = K.branch_and_bound_numpy(*args)
-    assert fast[0] == pytest.approx(ref[0], abs=1e-12)
-    assert tuple(fast[1:]) == tuple(ref[1:])
+    assert fast == ref  # the same score, bit for bit, at the same shift
     # the coarse bounds really bound: every block's bound >= the best fine score inside it
     assert bounds.max() >= fast[0]
+
+
+def test_branch_and_bound_equals_its_reference_bit_for_bit_over_the_grids_edges():
+    """Every block expanded (no bound prunes) on a dense random grid, the endpoints near its edges so that
+    shifted patches lie inside, straddle an edge or leave the grid: the same score bits at the same shift."""
+    rng = np.random.default_rng(5)
+    grid = rng.random((60, 70)).astype(np.float32)
+    k, W = 4, 8
+    cols = rng.integers(3, 67, (5, 200)).astype(np.int64)
+    rows = rng.integers(3, 57, (5, 200)).astype(np.int64)
+    cols[1] = rng.integers(9, 61, 200)  # one rotation whose patches stay inside for the small shifts
+    rows[1] = rng.integers(9, 51, 200)
+    starts = np.arange(-W, W + 1, k)
+    jj, uu, vv = (a.ravel().astype(np.int64) for a in np.meshgrid(np.arange(5), starts, starts, indexing="ij"))
+    order = rng.permutation(len(jj))
+    args = (grid, cols, rows, jj[order], uu[order], vv[order], np.full(len(jj), 2.0), k, W)
+    assert K.branch_and_bound(*args) == K.branch_and_bound_numpy(*args)
+    acc = np.empty((k, k))
+    for j, du0, dv0 in zip(jj, uu, vv):  # every block's every total, not only the best
+        nu, nv = min(du0 + k, W + 1) - du0, min(dv0 + k, W + 1) - dv0
+        K._score_block(grid, cols, rows, j, du0, nu, dv0, nv, acc)
+        DU, DV = np.meshgrid(np.arange(du0, du0 + nu), np.arange(dv0, dv0 + nv), indexing="ij")
+        ref = K.score_candidates_numpy(grid, cols, rows, np.full(DU.size, j), DU.ravel(), DV.ravel())
+        assert np.array_equal(acc[:nv, :nu].T.ravel() / cols.shape[1], ref), (j, du0, dv0)
 
 
 def _exhaustive(matcher, cols, rows, W):

@@ -33,7 +33,8 @@ except ImportError:  # pragma: no cover
 
 
 def score_candidates_numpy(grid, cols, rows, cand_j, cand_du, cand_dv) -> np.ndarray:
-    """Mean grid value under the shifted endpoints of each candidate (j, du, dv)."""
+    """Mean grid value under the shifted endpoints of each candidate (j, du, dv), the beams summed in
+    order (a running sum, as the compiled kernels add them: the same bits)."""
     h, w = grid.shape
     n = cols.shape[1]
     if n == 0:
@@ -42,7 +43,7 @@ def score_candidates_numpy(grid, cols, rows, cand_j, cand_du, cand_dv) -> np.nda
     r = rows[cand_j] + np.asarray(cand_dv)[:, None]
     inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
     vals = np.where(inside, grid[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)].astype(np.float64), 0.0)
-    return vals.sum(axis=1) / n
+    return np.cumsum(vals, axis=1)[:, -1] / n
 
 
 def branch_and_bound_numpy(grid, cols, rows, cand_j, cand_du, cand_dv, bounds, k, window):
@@ -100,26 +101,81 @@ if HAVE_NUMBA:
 
     @njit(cache=True, nogil=True)
     def score_candidates(grid, cols, rows, cand_j, cand_du, cand_dv):  # pragma: no cover - compiled
+        """``_score_one`` of each candidate. A candidate whose shifted endpoints all lie inside the grid
+        (its rotation's box of endpoint cells, shifted) sums them without the per-beam test, in the same
+        order."""
+        h, w = grid.shape
+        count, n = cols.shape
+        box = np.empty((count, 4), dtype=np.int64)  # per rotation: min col, max col, min row, max row
+        for j in range(count):
+            box[j, 0] = box[j, 2] = np.iinfo(np.int64).max
+            box[j, 1] = box[j, 3] = np.iinfo(np.int64).min
+            for i in range(n):
+                box[j, 0] = min(box[j, 0], cols[j, i])
+                box[j, 1] = max(box[j, 1], cols[j, i])
+                box[j, 2] = min(box[j, 2], rows[j, i])
+                box[j, 3] = max(box[j, 3], rows[j, i])
         out = np.empty(cand_j.shape[0])
         for m in range(cand_j.shape[0]):
-            out[m] = _score_one(grid, cols, rows, cand_j[m], cand_du[m], cand_dv[m])
+            j, du, dv = cand_j[m], cand_du[m], cand_dv[m]
+            if n > 0 and box[j, 0] + du >= 0 and box[j, 1] + du < w and box[j, 2] + dv >= 0 and box[j, 3] + dv < h:
+                total = 0.0
+                for i in range(n):
+                    total += grid[rows[j, i] + dv, cols[j, i] + du]
+                out[m] = total / n
+            else:
+                out[m] = _score_one(grid, cols, rows, j, du, dv)
         return out
+
+    @njit(cache=True, nogil=True)
+    def _score_block(grid, cols, rows, j, du0, nu, dv0, nv, acc):  # pragma: no cover - compiled
+        """acc[b, a] = the total of ``_score_one(…, j, du0 + a, dv0 + b)`` for the block's nu × nv shifts,
+        beam by beam: each beam adds its k × k patch of the grid row by row (the cells a row of shifts reads
+        lie side by side), and each total still sums its beams in order, as ``_score_one`` does."""
+        h, w = grid.shape
+        for b in range(nv):
+            for a in range(nu):
+                acc[b, a] = 0.0
+        for i in range(cols.shape[1]):
+            c0 = cols[j, i] + du0
+            r0 = rows[j, i] + dv0
+            if 0 <= c0 and c0 + nu <= w and 0 <= r0 and r0 + nv <= h:  # the patch inside the grid
+                for b in range(nv):
+                    for a in range(nu):
+                        acc[b, a] += grid[r0 + b, c0 + a]
+                continue
+            for b in range(nv):
+                r = r0 + b
+                if 0 <= r < h:
+                    for a in range(nu):
+                        c = c0 + a
+                        if 0 <= c < w:
+                            acc[b, a] += grid[r, c]
 
     @njit(cache=True, nogil=True)
     def branch_and_bound(grid, cols, rows, cand_j, cand_du, cand_dv, bounds, k, window):  # pragma: no cover
         """Coarse blocks sorted by their bound (descending): expand each block (its k × k fine
-        shifts, within ±window) until the next bound cannot beat the best fine score.
+        shifts, within ±window) until the next bound cannot beat the best fine score. The shifts are
+        compared in the order du, then dv, so the first of equal scores wins.
         Returns (best score, j, du, dv)."""
         best, bj, bdu, bdv = -1.0, 0, 0, 0
+        n = cols.shape[1]
+        acc = np.empty((k, k))
         for m in range(cand_j.shape[0]):
             if bounds[m] <= best:
                 break
             j = cand_j[m]
-            for du in range(cand_du[m], min(cand_du[m] + k, window + 1)):
-                for dv in range(cand_dv[m], min(cand_dv[m] + k, window + 1)):
-                    s = _score_one(grid, cols, rows, j, du, dv)
+            du0, dv0 = cand_du[m], cand_dv[m]
+            nu = min(du0 + k, window + 1) - du0
+            nv = min(dv0 + k, window + 1) - dv0
+            if nu <= 0 or nv <= 0:
+                continue
+            _score_block(grid, cols, rows, j, du0, nu, dv0, nv, acc)
+            for a in range(nu):
+                for b in range(nv):
+                    s = acc[b, a] / n if n > 0 else 0.0
                     if s > best:
-                        best, bj, bdu, bdv = s, j, du, dv
+                        best, bj, bdu, bdv = s, j, du0 + a, dv0 + b
         return best, bj, bdu, bdv
 
     @njit(cache=True, nogil=True)
