@@ -88,22 +88,23 @@ def sdf_at_numpy(sdf, g, qg):
 
 if HAVE_NUMBA:
     @njit(cache=True, nogil=True)
-    def _score_one(grid, cols, rows, j, du, dv):  # pragma: no cover - compiled
+    def _score_one(grid, cols, rows, j, du, dv, inside=False):  # pragma: no cover - compiled
+        """Score of candidate (j, du, dv), its beams added in order; ``inside``: every shifted endpoint is
+        known to lie on the grid, so no cell is tested."""
         h, w = grid.shape
         n = cols.shape[1]
         total = 0.0
         for i in range(n):
             c = cols[j, i] + du
             r = rows[j, i] + dv
-            if 0 <= c < w and 0 <= r < h:
+            if inside or (0 <= c < w and 0 <= r < h):
                 total += grid[r, c]
         return total / n if n > 0 else 0.0
 
     @njit(cache=True, nogil=True)
     def score_candidates(grid, cols, rows, cand_j, cand_du, cand_dv):  # pragma: no cover - compiled
-        """``_score_one`` of each candidate. A candidate whose shifted endpoints all lie inside the grid
-        (its rotation's box of endpoint cells, shifted) sums them without the per-beam test, in the same
-        order."""
+        """``_score_one`` of each candidate, told ``inside`` when its rotation's box of endpoint cells,
+        shifted, lies on the grid."""
         h, w = grid.shape
         count, n = cols.shape
         box = np.empty((count, 4), dtype=np.int64)  # per rotation: min col, max col, min row, max row
@@ -118,13 +119,8 @@ if HAVE_NUMBA:
         out = np.empty(cand_j.shape[0])
         for m in range(cand_j.shape[0]):
             j, du, dv = cand_j[m], cand_du[m], cand_dv[m]
-            if n > 0 and box[j, 0] + du >= 0 and box[j, 1] + du < w and box[j, 2] + dv >= 0 and box[j, 3] + dv < h:
-                total = 0.0
-                for i in range(n):
-                    total += grid[rows[j, i] + dv, cols[j, i] + du]
-                out[m] = total / n
-            else:
-                out[m] = _score_one(grid, cols, rows, j, du, dv)
+            inside = box[j, 0] + du >= 0 and box[j, 1] + du < w and box[j, 2] + dv >= 0 and box[j, 3] + dv < h
+            out[m] = _score_one(grid, cols, rows, j, du, dv, inside)
         return out
 
     @njit(cache=True, nogil=True)
@@ -168,8 +164,6 @@ if HAVE_NUMBA:
             du0, dv0 = cand_du[m], cand_dv[m]
             nu = min(du0 + k, window + 1) - du0
             nv = min(dv0 + k, window + 1) - dv0
-            if nu <= 0 or nv <= 0:
-                continue
             _score_block(grid, cols, rows, j, du0, nu, dv0, nv, acc)
             for a in range(nu):
                 for b in range(nv):
