@@ -31,9 +31,17 @@ def choose_threading_layer(layer: str = "workqueue") -> str:
 
 
 if HAVE_NUMBA:
-    from numba import int64, njit, prange, uint64
+    from numba import njit, prange
 
-    from localization.core.raycast.kernels import beam_ranges, bin_range, locate, refine, wall_line_range
+    from localization.core.raycast.kernels import (
+        beam_ranges,
+        bin_above,
+        bin_below,
+        bin_range,
+        locate,
+        refine,
+        wall_line_range,
+    )
 
     choose_threading_layer()
 
@@ -56,11 +64,10 @@ if HAVE_NUMBA:
         q0s = np.empty(n_beams)
         q1s = np.empty(n_beams)
         cells = np.empty(n_beams)
-        ks = np.empty(n_beams, dtype=np.int64)
+        ks = np.empty(n_beams, dtype=np.uint64)
         cols = np.empty(n_beams, dtype=np.int64)
         inv_units, max_cells = consts[K.C_INV_UNITS], consts[K.C_MAX_CELLS]
         step, cos_step, sin_step = consts[K.C_STEP], consts[K.C_COS_STEP], consts[K.C_SIN_STEP]
-        nb = uint64(n_bins)
         blind = 0.0  # a laser outside free space sees 0 on every beam
         for b in range(n_beams):
             blind += log_rows[b, 0]
@@ -95,14 +102,12 @@ if HAVE_NUMBA:
             for b in range(n_beams):
                 f = f0 + beam_f[b]
                 fs[b] = f - n_bins if f >= n_bins else f
-            for b in range(n_beams):  # bin k0 of each beam (as bin_pair): this pass compiles to SIMD
-                k0 = int64(fs[b])
-                ks[b] = n_bins - 1 if k0 >= n_bins else k0
-            for b in range(n_beams):  # the reads: unsigned indices (fs >= 0) need no negative-index test
-                k0 = uint64(ks[b])
-                k1 = k0 + uint64(1)
+            for b in range(n_beams):  # each beam's bin apart from the reads: this pass compiles to SIMD
+                ks[b] = bin_below(fs[b], n_bins)
+            for b in range(n_beams):
+                k0 = ks[b]
                 q0s[b] = row[k0]
-                q1s[b] = row[uint64(0) if k1 >= nb else k1]
+                q1s[b] = row[bin_above(k0, n_bins)]
             if mode == 2:
                 for b in range(n_beams):
                     cells[b] = wall_line_range(fs[b], q0s[b], q1s[b], u + beam_du[b], v + beam_dv[b], beam_c[b],
@@ -120,7 +125,7 @@ if HAVE_NUMBA:
                 cols[b] = int(np.rint(d))
             total = 0.0
             for b in range(n_beams):  # cols >= 0: an unsigned index
-                total += log_rows[b, uint64(cols[b])]
+                total += log_rows[b, np.uint64(cols[b])]
             if write:
                 for b in range(n_beams):
                     cols_out[i, b] = cols[b]

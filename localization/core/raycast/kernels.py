@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 try:  # numba is pinned in requirements.txt; numpy fallbacks keep the package importable without it
-    from numba import njit
+    from numba import int64, njit, uint64
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without numba
     HAVE_NUMBA = False
@@ -98,12 +98,17 @@ if HAVE_NUMBA:
                 table[i, k] = np.uint16(min(t * units_per_cell + 0.5, 65535.0))
 
     @njit(cache=True, nogil=True)
-    def bin_pair(f, n_bins):  # pragma: no cover - compiled
-        """The two table bins k0, k0 + 1 (mod K) either side of the bin position f in [0, K)."""
-        k0 = int(f)
-        k0 = n_bins - 1 if k0 >= n_bins else k0
-        k1 = k0 + 1
-        return k0, 0 if k1 >= n_bins else k1
+    def bin_below(f, n_bins):  # pragma: no cover - compiled
+        """The table bin k0 at or below the bin position f in [0, K) (K − 1 at most), unsigned: a read of a
+        table row at it needs no negative-index test."""
+        k0 = int64(f)
+        return uint64(n_bins - 1 if k0 >= n_bins else k0)
+
+    @njit(cache=True, nogil=True)
+    def bin_above(k0, n_bins):  # pragma: no cover - compiled
+        """The bin after the unsigned bin k0, mod K."""
+        k1 = k0 + uint64(1)
+        return uint64(0) if k1 >= uint64(n_bins) else k1
 
     @njit(cache=True, nogil=True)
     def wall_line_range(f, q0, q1, ub, vb, cb, sb, inv_units, step, cos_step, sin_step,
@@ -174,9 +179,9 @@ if HAVE_NUMBA:
             f = f0 + beam_f[b]
             fs[b] = f - n_bins if f >= n_bins else f
         for b in range(n_beams):
-            k0, k1 = bin_pair(fs[b], n_bins)
+            k0 = bin_below(fs[b], n_bins)
             q0s[b] = row[k0]
-            q1s[b] = row[k1]
+            q1s[b] = row[bin_above(k0, n_bins)]
         if mode == 2:  # the wall line through the two bins' hit points; the nearest bin on a miss
             step, cos_step, sin_step = consts[C_STEP], consts[C_COS_STEP], consts[C_SIN_STEP]
             for b in range(n_beams):
