@@ -23,3 +23,18 @@ def test_per_scan_runs_a_given_particle_count_updating_on_every_scan(shared_dir)
     r = per_scan.measure("bag3", skip=40, repeat=1, particles=600)
     assert r["particles"] == 600
     assert r["sensor_updates"] == r["scans"] > 0  # the file's update policy skips some; this run none
+
+
+def test_per_scan_busy_spends_the_gap_awake_instead_of_sleeping(shared_dir, monkeypatch):
+    """``busy``: the same gap after every scan, spent in ``busy_wait`` (the processor never idles), never slept;
+    and ``busy_wait`` itself lets the wall time pass without sleeping."""
+    slept, busy = [], []
+    monkeypatch.setattr(per_scan.time, "sleep", lambda s: slept.append(s))
+    real_busy_wait = per_scan.busy_wait
+    monkeypatch.setattr(per_scan, "busy_wait", lambda s: busy.append(s))
+    r = per_scan.measure("bag3", skip=40, repeat=1, gap=0.02, busy=True)
+    assert r["busy"] is True and not slept
+    assert len(busy) == 2 * (r["scans"] + 40) and set(busy) == {0.02}
+    t0 = per_scan.time.perf_counter()
+    real_busy_wait(0.01)
+    assert per_scan.time.perf_counter() - t0 >= 0.01 and not slept

@@ -1,6 +1,7 @@
 """CPU per scan in the core, stage by stage: a real bag fed to the Localizer as replay feeds it.
 
-    python -m localization.benchmarks.per_scan [--bag bag1] [--skip 40] [--repeat 5] [--gap MS] [--particles N] [--json]
+    python -m localization.benchmarks.per_scan [--bag bag1] [--skip 40] [--repeat 5] [--gap MS [--busy]] [--particles N]
+                                               [--json]
 
 RSS bag1 (or another of the real bags) with its robot's parameter file (config/real_params.yaml), a global start
 as ``localization-replay`` makes it, seed 0. The scans after the first ``--skip`` (the global spread has
@@ -13,7 +14,9 @@ deskew. Best of ``--repeat`` runs (the first run warms up). What it costs in cou
 
 Fed back to back, the scans find the caches and the processor as the last one left them. The live node
 idles between scans (a scan every 25 ms, odometry every 20 ms) while other processes run: ``--gap MS``
-sleeps that long after each scan (outside the timed calls) to measure the core as the node runs it.
+sleeps that long after each scan (outside the timed calls) to measure the core as the node runs it;
+``--busy`` spends the gap in a busy loop instead (the processor never idles): the difference between the two is
+what waking from an idle costs the same code on this machine.
 ``--particles N`` runs N particles and lets every scan update the filter (``update_min_distance`` and
 ``update_min_angle`` 0), as ``benchmarks.latency --particles`` does.
 """
@@ -28,9 +31,10 @@ import time
 
 
 def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0,
-            particles: int | None = None) -> dict:
+            particles: int | None = None, busy: bool = False) -> dict:
     """{"scans", "sensor_updates", "ms_per_scan", "parts": {name: ms per scan}, "load_average"} (best run);
-    ``gap``: seconds slept after each scan; ``particles``: that many, every scan updating (None: the file's)."""
+    ``gap``: seconds slept after each scan (``busy``: spent in a busy loop instead); ``particles``: that many,
+    every scan updating (None: the file's)."""
     from localization.bags import open_bag
     from localization.core.localizer import Localizer
     from localization.core.occupancy_map import load_map
@@ -77,10 +81,11 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
             if timing[0]:
                 total += time.thread_time() - t0
             if gap and is_scan:
-                time.sleep(gap)
+                wait(gap)
         updates = sum(1 for c in getattr(feeder.log, "costs", [])[skip:] if c.particles)
         return total, scans - skip, updates
 
+    wait = busy_wait if busy else time.sleep
     best = None
     for k in range(repeat + 1):
         parts.clear()
@@ -89,9 +94,17 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
             best = (total, dict(parts), scans, updates)
     total, best_parts, scans, updates = best
     return {"bag": bag, "particles": params.num_particles, "beams": params.num_beams_per_particle, "gap_s": gap,
+            "busy": busy,
             "scans": scans, "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
             "parts": {name: 1e3 * v / scans for name, v in sorted(best_parts.items(), key=lambda kv: -kv[1])},
             "load_average": os.getloadavg()[0]}
+
+
+def busy_wait(seconds: float) -> None:
+    """Spend ``seconds`` of wall time in a loop (the processor stays busy, as ``time.sleep`` lets it idle)."""
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        pass
 
 
 def thread_timed(call, into: dict, key: str, active=lambda: True):
@@ -116,18 +129,20 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--gap", type=float, default=0.0, metavar="MS",
                     help="milliseconds slept after each scan, as the live node idles between them (default 0)")
+    ap.add_argument("--busy", action="store_true",
+                    help="spend the gap in a busy loop instead of sleeping (the processor never idles)")
     ap.add_argument("--particles", type=int, default=None, metavar="N",
                     help="N particles, every scan updating the filter (default: the file's count and update policy)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    r = measure(args.bag, args.skip, args.repeat, args.gap / 1e3, args.particles)
+    r = measure(args.bag, args.skip, args.repeat, args.gap / 1e3, args.particles, args.busy)
     if args.json:
         print(json.dumps(r))
         return 0
     print(f"{r['bag']}: {r['scans']} scans after the first {args.skip} ({r['sensor_updates']} sensor updates, "
           f"{r['particles']} particles x {r['beams']} beams): {r['ms_per_scan']:.2f} ms of CPU per scan "
-          f"(thread time, best of {args.repeat}; {args.gap:g} ms slept after each scan; load average "
-          f"{r['load_average']:.1f}), of which")
+          f"(thread time, best of {args.repeat}; {args.gap:g} ms {'busy' if args.busy else 'slept'} after each scan; "
+          f"load average {r['load_average']:.1f}), of which")
     for name, ms in r["parts"].items():
         print(f"  {name:24s} {ms:6.3f} ms")
     return 0
