@@ -56,6 +56,7 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
                                  ("map", "base_link"), [], []))
     parts: dict[str, float] = {}
     timing = [False]
+    wait = busy_wait if busy else time.sleep  # the gap after each scan
 
     def run():
         loc = Localizer(params)
@@ -85,7 +86,6 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
         updates = sum(1 for c in getattr(feeder.log, "costs", [])[skip:] if c.particles)
         return total, scans - skip, updates
 
-    wait = busy_wait if busy else time.sleep
     best = None
     for k in range(repeat + 1):
         parts.clear()
@@ -94,8 +94,7 @@ def measure(bag: str = "bag1", skip: int = 40, repeat: int = 5, gap: float = 0.0
             best = (total, dict(parts), scans, updates)
     total, best_parts, scans, updates = best
     return {"bag": bag, "particles": params.num_particles, "beams": params.num_beams_per_particle, "gap_s": gap,
-            "busy": busy,
-            "scans": scans, "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
+            "busy": busy, "scans": scans, "sensor_updates": updates, "ms_per_scan": 1e3 * total / scans,
             "parts": {name: 1e3 * v / scans for name, v in sorted(best_parts.items(), key=lambda kv: -kv[1])},
             "load_average": os.getloadavg()[0]}
 
