@@ -9,7 +9,7 @@ from helpers import corridor_map, wrap_sensor_updates
 from localization.benchmarks import robustness as RB
 from localization.core.filter.mcl import Estimate, MonteCarloLocalizer, SensorUpdateResult, Snapshot
 from localization.core.localizer import Localizer
-from localization.core.localizer.health import AgreementScorer, HealthMonitor, cloud_spread
+from localization.core.localizer.health import AgreementScorer, HealthMonitor, cloud_spread, cloud_spread_numpy
 from localization.core.localizer.recovery import Action, Decision, SwitchGlide, is_jump
 from localization.core.localizer.timeline import PoseEstimate
 from localization.core.models.beam import BeamModel as SensorModel
@@ -69,6 +69,19 @@ def test_monitor_from_parameters():
 def test_cloud_spread():
     assert cloud_spread(np.diag([4.0, 1.0, 0.1])) == pytest.approx(2.0)
     assert cloud_spread(np.full((3, 3), np.nan)) == math.inf
+    assert cloud_spread(np.array([[1.0, 0.0], [0.0, np.inf]])) == math.inf
+    assert cloud_spread(np.zeros((3, 3))) == 0.0
+
+
+def test_cloud_spread_equals_its_numpy_reference():
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        a = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-4.0, 1.0)
+        cov = a @ a.T
+        cov[0, 1] += rng.normal() * 1e-9 * cov[0, 0]  # not quite symmetric, as a summed covariance can be
+        assert cloud_spread(cov) == pytest.approx(cloud_spread_numpy(cov), rel=1e-12, abs=1e-15)
+    degenerate = np.array([[1e-30, 0.0, 0.0], [0.0, -1e-30, 0.0], [0.0, 0.0, 1.0]])  # rounding below zero
+    assert cloud_spread(degenerate) == pytest.approx(cloud_spread_numpy(degenerate), abs=1e-15)
 
 
 # ------------------------------------------------------------------------------- agreement

@@ -151,3 +151,22 @@ def test_the_compiled_pieces_equal_their_numpy_reference(max_acceleration):
         for x, y in zip(fast, ref):
             assert x.shape == y.shape and np.array_equal(x, y)
     assert (buf.slip_segments(t0, t1)[2] != 0).any() == (max_acceleration > 0)
+
+
+def test_the_history_arrays_hold_the_messages_as_they_come_and_go():
+    """The arrays the compiled queries read (written as messages come, trimmed by moving their first row)
+    always hold the buffer's messages: over adds, trims past the arrays' room, and a reset."""
+    rng = np.random.default_rng(5)
+    buf = OdometryBuffer(max_acceleration=6.0)
+    t = 0.0
+    for step in range(600):
+        t += rng.uniform(0.01, 0.03)
+        buf.add(TwistData(t, rng.uniform(0, 3), rng.normal(0, 0.05), rng.normal(0, 0.3)))
+        if step % 7 == 0:
+            buf.trim(t - rng.uniform(0.0, 2.0 if step < 300 else 0.2))  # long, then short histories
+        if step == 450:
+            buf.reset()
+        stamps, twists, slips, slipped = buf._as_arrays()
+        assert np.array_equal(stamps, np.asarray(buf._t)) and np.array_equal(twists, np.asarray(buf._twist).reshape(-1, 3))
+        assert np.array_equal(slips, np.asarray(buf._slip)) and np.array_equal(slipped, np.asarray(buf._slipped))
+        assert twists.shape == (len(buf), 3) and stamps.flags.c_contiguous

@@ -79,7 +79,10 @@ class OdometryBuffer:
         self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
         self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
         self._after_boundary = False  # the newest message is a history's start marker (no measured speed)
-        self._arrays = None  # (stamps, twists, slips, slipped) as arrays, made once per change (queries reuse them)
+        # the same four histories as arrays for the compiled queries, written as messages come: rows
+        # [_first, _first + len) of each are the messages in the lists; trim moves _first, nothing is copied
+        self._store = _ArrayHistory()
+        self._arrays = None  # (stamps, twists, slips, slipped): views of the store, made once per change
 
     def __len__(self) -> int:
         return len(self._t)
@@ -110,12 +113,14 @@ class OdometryBuffer:
         self._twist.append((vx, s * float(twist.vy), self.yaw_rate_scale * float(twist.wz) + self.yaw_rate_bias))
         self._slip.append(slip)
         self._slipped.append(slipped)
+        self._store.append(t, self._twist[-1], slip, slipped)
         self._after_boundary = boundary
         self._arrays = None
         return t
 
     def reset(self) -> None:
         self._arrays = None
+        self._store.drop(len(self._t))
         self._t.clear()
         self._twist.clear()
         self._slip.clear()
@@ -128,16 +133,17 @@ class OdometryBuffer:
         n = min(n, len(self._t) - keep)
         if n > 0:
             self._arrays = None
+            self._store.drop(n)
             del self._t[:n]
             del self._twist[:n]
             del self._slip[:n]
             del self._slipped[:n]
 
     def _as_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(stamps (K,), twists (K, 3), slips (K,), slipped (K,)) as arrays (made once until the next change)."""
+        """(stamps (K,), twists (K, 3), slips (K,), slipped (K,)) as arrays: the lists' values (views of the
+        store, made once until the next change)."""
         if self._arrays is None:
-            self._arrays = (np.asarray(self._t, dtype=float), np.asarray(self._twist, dtype=float).reshape(-1, 3),
-                            np.asarray(self._slip, dtype=float), np.asarray(self._slipped, dtype=float))
+            self._arrays = self._store.views()
         return self._arrays
 
     def twist_at(self, t: float) -> np.ndarray:
@@ -220,6 +226,41 @@ class OdometryBuffer:
         for dt, (vx, vy, wz) in zip(*(a.tolist() for a in self.segments(t0, t1))):
             pose = compose_floats(pose, integrate_twist_floats(vx, vy, wz, dt))
         return np.array(pose)
+
+
+class _ArrayHistory:
+    """The buffer's messages as growing arrays (stamps, twists (·, 3), slips, slipped): ``append`` writes the
+    next row, ``drop`` forgets the oldest rows by moving the first one; the rows move to the front only when
+    the arrays are full (``views``: the live rows, contiguous)."""
+
+    def __init__(self, capacity: int = 64):
+        self.first, self.end = 0, 0
+        self.columns = (np.empty(capacity), np.empty((capacity, 3)), np.empty(capacity), np.empty(capacity))
+
+    def append(self, t: float, twist, slip: float, slipped: float) -> None:
+        if self.end == len(self.columns[0]):
+            self._make_room()
+        stamps, twists, slips, slipped_rows = self.columns
+        k = self.end
+        stamps[k], twists[k], slips[k], slipped_rows[k] = t, twist, slip, slipped
+        self.end = k + 1
+
+    def drop(self, count: int) -> None:
+        self.first = min(self.first + count, self.end)
+        if self.first == self.end:
+            self.first = self.end = 0
+
+    def views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return tuple(column[self.first:self.end] for column in self.columns)
+
+    def _make_room(self) -> None:
+        """The live rows to the front, into arrays twice the size when more than half of the room is live."""
+        live, capacity = self.end - self.first, len(self.columns[0])
+        columns = self.columns if 2 * live <= capacity else tuple(
+            np.empty((2 * capacity,) + c.shape[1:]) for c in self.columns)
+        for new, old in zip(columns, self.columns):
+            new[:live] = old[self.first:self.end]
+        self.columns, self.first, self.end = columns, 0, live
 
 
 if njit is not None:
