@@ -167,6 +167,7 @@ def test_the_history_arrays_hold_the_messages_as_they_come_and_go():
         if step == 450:
             buf.reset()
         stamps, twists, slips, slipped = buf._as_arrays()
-        assert np.array_equal(stamps, np.asarray(buf._t)) and np.array_equal(twists, np.asarray(buf._twist).reshape(-1, 3))
+        assert np.array_equal(stamps, np.asarray(buf._t))
+        assert np.array_equal(twists, np.asarray(buf._twist).reshape(-1, 3))
         assert np.array_equal(slips, np.asarray(buf._slip)) and np.array_equal(slipped, np.asarray(buf._slipped))
         assert twists.shape == (len(buf), 3) and stamps.flags.c_contiguous
