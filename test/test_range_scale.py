@@ -199,3 +199,14 @@ def test_the_compiled_probe_casts_as_its_numpy_reference(caster, deskew):
         assert np.mean(np.abs(got - want) < 1e-9) > 0.95  # marches from each beam's origin, the reference casts
     else:
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_jacobian_poses_are_the_estimate_and_its_six_shifts_bit_for_bit():
+    from localization.core.localizer.range_scale import JACOBIAN_STEP_M, JACOBIAN_STEP_RAD
+    steps = np.diag([JACOBIAN_STEP_M, JACOBIAN_STEP_M, JACOBIAN_STEP_RAD])
+    for pose in (np.array([1.25, -3.5, 0.7]), np.array([-0.0, 0.0, -0.0]), np.array([1e6, -1e-9, -3.14159])):
+        expected = np.vstack([pose, pose + steps[0], pose - steps[0], pose + steps[1], pose - steps[1],
+                              pose + steps[2], pose - steps[2]])
+        got = jacobian_poses(list(pose))
+        assert got.shape == (7, 3) and np.array_equal(got, expected)
+        assert np.array_equal(np.signbit(got), np.signbit(expected))  # signed zeros too

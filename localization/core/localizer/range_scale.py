@@ -110,10 +110,11 @@ def estimate_scale(z, d, scale: float, wall_depth: float = 0.0, jacobian=None) -
 def jacobian_poses(pose) -> np.ndarray:
     """(7, 3): the estimate, then shifted by ± ``JACOBIAN_STEP_M`` in x, in y and ± ``JACOBIAN_STEP_RAD``
     in θ: cast the scan's beams from these and pass the (7, B) ranges to ``range_jacobian``."""
-    steps = np.diag([JACOBIAN_STEP_M, JACOBIAN_STEP_M, JACOBIAN_STEP_RAD])
-    pose = np.asarray(pose, dtype=float).reshape(3)
-    return np.vstack([pose, pose + steps[0], pose - steps[0], pose + steps[1], pose - steps[1],
-                      pose + steps[2], pose - steps[2]])
+    poses = np.empty((7, 3))
+    poses[:] = np.asarray(pose, dtype=float).reshape(3)
+    poses[1::2] += _SHIFTS  # rows 1, 3, 5: pose + step in x, y, θ
+    poses[2::2] -= _SHIFTS  # rows 2, 4, 6: pose − step
+    return poses
 
 
 def range_jacobian(ranges) -> tuple[np.ndarray, np.ndarray]:
@@ -139,6 +140,7 @@ def fit_step_numpy(z, ranges, valid, scale: float, wall_depth: float = 0.0) -> t
 
 
 _STEPS = np.array([JACOBIAN_STEP_M, JACOBIAN_STEP_M, JACOBIAN_STEP_RAD])
+_SHIFTS = np.diag(_STEPS)  # row k: the step in coordinate k
 _PRIOR = np.concatenate([[0.0], (BEAM_STD_M / np.array([PRIOR_STD_M, PRIOR_STD_M, PRIOR_STD_RAD])) ** 2])
 
 if njit is not None:
