@@ -124,6 +124,18 @@ def test_downsampling_with_invalid_ranges():
     assert np.all(sm.to_cells(np.array([np.inf, np.nan, 1e9])) == 200)
 
 
+def test_to_cells_rounds_and_clips_as_its_definition():
+    """Table indices: rint of clip(range / resolution, 0, k), NaN as k; every finite, infinite and NaN range."""
+    sm = SensorModel()
+    rng = np.random.default_rng(4)
+    ranges = np.concatenate([rng.uniform(-1.0, 12.0, 20000), [np.nan, np.inf, -np.inf, -0.0, 0.0]])
+    for k in (200, 120, 7):
+        cells = ranges * (1.0 / sm.params.table_resolution)
+        expected = np.rint(np.clip(np.where(np.isnan(cells), k, cells), 0, k)).astype(np.intp)
+        assert np.array_equal(sm.to_cells(ranges, k), expected)
+    assert sm.to_cells(3.3) == np.rint(3.3 / sm.params.table_resolution)  # a single range too
+
+
 # ------------------------------------------------------------------ z_max: the sensor's range, in metres
 LIDAR_5_6 = 5.6  # m: a short-range lidar (the UoB Pioneer bags' range_max)
 

@@ -155,7 +155,7 @@ class ScanPipeline:
                 for cloud in clouds:
                     cloud.shift(inverse(self.timeline.motion(t, t_from)))
             dts, twists, slips = self.timeline.slip_segments(t_from, t)
-            pieces = integrate_twists(twists[:, 0], twists[:, 1], twists[:, 2], dts)
+            pieces = integrate_twists(*np.ascontiguousarray(twists.T), dts)  # the columns in one copy
             if len(clouds) == 1:  # every piece in one pass over the cloud
                 self.pf.motion_updates(pieces, slips)
             else:  # piece by piece, each cloud in turn: the draws in the order they always came

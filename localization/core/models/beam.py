@@ -375,8 +375,7 @@ class BeamModel(LaserMount):
         and ranges beyond the row k count as k."""
         k = self.z_max if k is None else int(k)
         cells = np.asarray(ranges_m, dtype=float) * (1.0 / self.params.table_resolution)
-        cells = np.where(np.isnan(cells), k, cells)
-        return np.rint(np.clip(cells, 0, k)).astype(np.intp)
+        return np.rint(np.fmax(np.fmin(cells, k), 0.0)).astype(np.intp)  # fmin: NaN (no return) -> k
 
     def measured_to_cells(self, ranges, k: int | None = None) -> np.ndarray:
         """Measured ranges (lidar metres) -> table rows in [0, k]: s·z − o in map metres (s =
