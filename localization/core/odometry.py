@@ -79,8 +79,8 @@ class OdometryBuffer:
         self._slip: list[float] = []  # m/s over (t'_{k−1}, t'_k]: v*_k − vx'_k (0 without max_acceleration)
         self._slipped: list[float] = []  # m: A at t'_{k−1}, the episode's ∫ |slip| dt before period k
         self._after_boundary = False  # the newest message is a history's start marker (no measured speed)
-        # the same four histories as arrays for the compiled queries, written as messages come: rows
-        # [_first, _first + len) of each are the messages in the lists; trim moves _first, nothing is copied
+        # the same four histories as arrays for the compiled queries, written as messages come: the store's rows
+        # first … end − 1 are the messages in the lists; trim moves its first row, nothing is copied
         self._store = _ArrayHistory()
         self._arrays = None  # (stamps, twists, slips, slipped): views of the store, made once per change
 
