@@ -227,6 +227,30 @@ def test_fused_kernel_equals_numpy_with_a_short_z_max(tmp_path, monkeypatch):
         np.testing.assert_allclose(fast[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-9, atol=1e-9)
 
 
+def test_each_weight_of_the_fused_kernel_is_that_particle_s_own_sum_bit_for_bit(tmp_path, monkeypatch):
+    """The kernel sums four particles side by side: every weight equals that of the particle weighed alone,
+    bit for bit, whatever its place in the cloud and with impossible particles (off the map, in a wall,
+    NaN) among them."""
+    monkeypatch.setenv("LOCALIZATION_CACHE_DIR", str(tmp_path))
+    m = long_corridor()
+    sm = SensorModel(ray_caster="lookup_table", scan_theta_discretization=36, laser_offset=(0.275, 0.01, 0.02),
+                     occupancy_map=m)
+    rng = np.random.default_rng(8)
+    particles = np.column_stack([rng.uniform(0.5, 24.5, 203), rng.uniform(0.4, 2.6, 203), rng.uniform(-3, 3, 203)])
+    particles[[1, 6, 7, 13, 100]] = [[-3.0, 1.5, 0.0], [6.0, 0.02, 0.0], [30.0, 1.5, 0.0], [np.nan, 1.5, 0.0],
+                                     [6.0, -0.5, 1.0]]
+    angles = np.linspace(-2.35, 2.35, 61)
+    obs = sm.expected_ranges(particles[:1], angles)[0] + rng.normal(0.0, 0.05, angles.size)
+    obs[::9] = np.inf
+    together = sm.log_likelihood(particles, obs, angles, range_max=LIDAR_5_6).copy()
+    alone = np.array([sm.log_likelihood(p[None], obs, angles, range_max=LIDAR_5_6)[0] for p in particles])
+    assert np.isneginf(together).sum() >= 4 and np.isfinite(together).sum() > 150
+    assert np.array_equal(together.view(np.int64), alone.view(np.int64))
+    for start in range(1, 4):  # the groups of four start elsewhere in the cloud: the same weights
+        np.testing.assert_array_equal(sm.log_likelihood(particles[start:], obs, angles, range_max=LIDAR_5_6),
+                                      together[start:])
+
+
 def test_wall_depth_scores_a_return_as_ending_that_far_behind_the_free_space_edge(tmp_path, monkeypatch):
     """map_wall_depth o: a return z is scored as s·z − o; returns at z_max and no-returns stay max-range
     readings; the fused kernel equals its numpy reference with it."""
