@@ -131,3 +131,42 @@ def test_each_kernel_runs_with_one_signature(tmp_path):
         assert len(seen) >= 10, seen
         assert {k: v for k, v in seen.items() if len(v) > 1} == {}
         assert [k for k, v in seen.items() if "True, aligned" in v[0]] == []  # Array(..., readonly=True, ...)
+
+
+LAPACK_PROBE = """
+import json, sys
+import numpy as np
+from localization.core import compile_cache as cc
+from localization.core.localizer import Localizer
+from localization.core.models.motion import noise_factor_numpy
+from localization.core.models.motion_kernels import factor_kernel
+from localization.core.parameters import Parameters
+from localization.eval.replay.run import load_map
+out = {"scipy_linalg_at_start": "scipy.linalg" in sys.modules}
+localizer = Localizer(Parameters.from_yaml(sys.argv[1]))
+localizer.set_map(load_map("basement_fixed"))  # ensure_compiled, then the kernels loaded and warmed up
+out["preloaded"] = all(name in sys.modules for name in cc.LAPACK_MODULES)
+out["scipy_linalg_after_set_map"] = "scipy.linalg" in sys.modules
+cov = np.array([[0.04, 0.01, 0.002], [0.01, 0.03, -0.001], [0.002, -0.001, 0.01]])
+out["eigh_as_numpy"] = bool(np.array_equal(factor_kernel(cov), noise_factor_numpy(cov)))
+out["scipy_linalg_after_eigh"] = "scipy.linalg" in sys.modules
+out["again"] = cc.preload_lapack()
+import scipy.linalg
+out["scipy_eigh"] = bool(np.allclose(scipy.linalg.eigh(cov)[0], np.linalg.eigh(cov)[0]))
+import scipy.linalg.cython_lapack as lapack
+out["same_module"] = lapack is sys.modules["scipy.linalg.cython_lapack"]
+print(json.dumps(out))
+"""
+
+
+def test_numbas_lapack_comes_without_the_scipy_linalg_package():
+    """A fresh process preparing the car file's localizer loads scipy's Cython BLAS/LAPACK alone (not
+    ``scipy.linalg``'s package, a fixed part of every start): the motion model's compiled ``eigh`` then gives
+    numpy's factor exactly, still without the package; a later ``import scipy.linalg`` works and reuses them."""
+    from localization.core.paths import config_dir
+    out = subprocess.run([sys.executable, "-c", LAPACK_PROBE, str(config_dir() / "real_params.yaml")],
+                         capture_output=True, text=True, timeout=300, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got == {"scipy_linalg_at_start": False, "preloaded": True, "scipy_linalg_after_set_map": False,
+                   "eigh_as_numpy": True, "scipy_linalg_after_eigh": False, "again": False, "scipy_eigh": True,
+                   "same_module": True}

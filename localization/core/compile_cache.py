@@ -16,6 +16,12 @@ and written to the cache), then exits, returning its memory. The caller then loa
 from the cache. When the cache cannot be written (the check still fails afterwards) the caller
 compiles in-process, as before, after one log line. ``LOCALIZATION_KERNELS_IN_PROCESS=1`` turns
 the child off (compile in-process).
+
+numba's start has a fixed part too: its first kernel load installs its typing registries, and its check
+for a BLAS imports ``scipy.linalg.cython_blas``, which runs all of ``scipy.linalg``'s package ``__init__``
+first. ``preload_lapack()`` (called by ``ensure_compiled``) loads scipy's two Cython BLAS/LAPACK modules from
+their files alone, before that: numba finds them in ``sys.modules`` and takes the same function pointers
+from them (docs/performance.md has the start's figures).
 """
 from __future__ import annotations
 
@@ -78,6 +84,46 @@ def _threaded(params) -> bool:
     return min(int(params.num_threads), numba.config.NUMBA_NUM_THREADS) > 1
 
 
+LAPACK_MODULES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")  # in this order: LAPACK's needs BLAS's
+
+
+def preload_lapack() -> bool:
+    """Load ``LAPACK_MODULES``, scipy's Cython BLAS and LAPACK (what numba's linear algebra calls: the motion
+    model's ``eigh``), from their extension files without importing the ``scipy.linalg`` package, whose
+    ``__init__`` numba's start otherwise runs for them. They are scipy's own modules under their own
+    names; a later ``import scipy.linalg`` imports the package and finds them loaded. True when this
+    loaded them; False when there was nothing to do (either already imported) or they are not where scipy
+    keeps them (then the normal import loads them when numba asks). Never raises."""
+    if "scipy.linalg" in sys.modules or any(name in sys.modules for name in LAPACK_MODULES):
+        return False
+    try:
+        import importlib.machinery
+        import importlib.util
+        from pathlib import Path
+        scipy_spec = importlib.util.find_spec("scipy")
+        folder = Path(scipy_spec.origin).parent / "linalg"
+        paths = []
+        for name in LAPACK_MODULES:
+            leaf = name.rsplit(".", 1)[1]
+            found = [folder / (leaf + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES
+                     if (folder / (leaf + suffix)).is_file()]
+            if not found:
+                return False
+            paths.append(found[0])
+        for name, path in zip(LAPACK_MODULES, paths):
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[name]
+                raise
+    except Exception:  # noqa: BLE001 - scipy missing or laid out otherwise: numba's own import does it
+        return False
+    return True
+
+
 def drop_if_older(dispatcher, *sources: str) -> bool:
     """numba's cache checks only the kernel's own source file: a kernel that calls compiled helpers from
     another module (inlined into its machine code) would load a stale compilation after only the helpers
@@ -108,6 +154,7 @@ def ensure_compiled(params, logger=None) -> str:
     """Make sure the kernels ``params`` use are in numba's cache (see the module docstring).
     Returns what happened: "cached", "compiled" (by a child process), "in-process" or "unknown"."""
     logger = logger or log
+    preload_lapack()
     kernels = tuple(kernels_for(params))
     if kernels in _checked or os.environ.get("LOCALIZATION_KERNELS_IN_PROCESS") == "1":
         return "in-process"
