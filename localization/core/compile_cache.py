@@ -91,7 +91,8 @@ def preload_lapack() -> bool:
     """Load ``LAPACK_MODULES``, scipy's Cython BLAS and LAPACK (what numba's linear algebra calls: the motion
     model's ``eigh``), from their extension files without importing the ``scipy.linalg`` package, whose
     ``__init__`` numba's start otherwise runs for them. They are scipy's own modules under their own
-    names; a later ``import scipy.linalg`` imports the package and finds them loaded. True when this
+    names; a later ``import scipy.linalg`` imports the package and finds them loaded (reached by their own
+    import, ``import scipy.linalg.cython_lapack``: the package never sets them as its attributes). True when this
     loaded them; False when there was nothing to do (either already imported) or they are not where scipy
     keeps them (then the normal import loads them when numba asks). Never raises."""
     if "scipy.linalg" in sys.modules or any(name in sys.modules for name in LAPACK_MODULES):
