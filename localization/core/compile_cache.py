@@ -106,11 +106,11 @@ def preload_lapack() -> bool:
         paths = []
         for name in LAPACK_MODULES:
             leaf = name.rsplit(".", 1)[1]
-            found = [folder / (leaf + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES
-                     if (folder / (leaf + suffix)).is_file()]
-            if not found:
+            candidates = (folder / (leaf + suffix) for suffix in importlib.machinery.EXTENSION_SUFFIXES)
+            path = next((c for c in candidates if c.is_file()), None)
+            if path is None:
                 return False
-            paths.append(found[0])
+            paths.append(path)
         for name, path in zip(LAPACK_MODULES, paths):
             spec = importlib.util.spec_from_file_location(name, path)
             module = importlib.util.module_from_spec(spec)
